@@ -1,0 +1,210 @@
+"""Scenarios: what a simulated run drives over, cycle by cycle.
+
+A :class:`Scenario` is the list of per-leg-cycle model parameters (slip and
+soil may change every cycle) plus the IMU settings (sample rate, noise, seed)
+and the optional effects of the sim-to-real catalog. It is pure data; a TOML
+file is parsed by the CLI and handed here as a dict (:meth:`Scenario.from_dict`).
+
+TOML/dict layout (every key optional except the segments)::
+
+    [model]          # StickSlipParams fields shared by all cycles (SI)
+    kappa = 0.3
+    nL = 4
+    [imu]
+    rate = 1000.0    # sample rate [Hz]
+    noise = 0.01     # Gaussian noise, standard deviation [g]
+    seed = 1
+    [[segment]]      # cycles driven with one slip and soil
+    cycles = 10
+    slip = 0.2       # or [0.1, 0.4]: a linear ramp over the segment's cycles
+    kS = 1000.0      # [N/m]
+    phiS = 0.52      # [rad]
+    phiD = 0.35      # [rad]
+    [[effect]]       # effects of the sim-to-real catalog (slipest.model.effects)
+    name = "imu_lowpass"
+    cutoff = 40.0
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Callable, Sequence
+
+import numpy as np
+
+from slipest.model.params import PARAM_NAMES, StickSlipParams
+from slipest.model.stance import DEFAULT_DT
+
+#: Default IMU sample rate [Hz].
+DEFAULT_RATE = 1000.0
+
+#: Per-cycle fields a segment may set; the rest belong to [model].
+SEGMENT_FIELDS = ("slip", "kS", "phiS", "phiD")
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """A simulated run: per-cycle model parameters and IMU settings.
+
+    cycles: one :class:`StickSlipParams` per leg cycle, in driving order.
+    rate: IMU sample rate [Hz]. noise_g: IMU noise standard deviation [g].
+    seed: random seed of the noise (None: fresh entropy).
+    dt: model integration step [s].
+    effects: effect specifications (``{"name": ..., params...}`` dicts) of
+        the sim-to-real catalog, applied by :mod:`slipest.model.stream`.
+    """
+
+    cycles: tuple[StickSlipParams, ...]
+    rate: float = DEFAULT_RATE
+    noise_g: float = 0.0
+    seed: int | None = None
+    dt: float = DEFAULT_DT
+    effects: tuple = field(default_factory=tuple)
+
+    def __post_init__(self):
+        if not self.cycles:
+            raise ValueError("a scenario needs at least one leg cycle")
+        first = self.cycles[0]
+        for j, c in enumerate(self.cycles):
+            if (c.nL, c.omega) != (first.nL, first.omega):
+                raise ValueError(f"cycle {j}: nL and omega must be the same for every cycle of a run")
+        if not (math.isfinite(self.rate) and self.rate > 0):
+            raise ValueError(f"IMU rate={self.rate} Hz must be positive")
+        if not (math.isfinite(self.noise_g) and self.noise_g >= 0):
+            raise ValueError(f"IMU noise={self.noise_g} g must be >= 0")
+        if not 0 < self.dt <= 1.0 / self.rate:
+            raise ValueError(f"model step dt={self.dt} s must be positive and not coarser than the IMU period")
+
+    @property
+    def n_legs(self) -> int:
+        return self.cycles[0].nL
+
+    @property
+    def omega(self) -> float:
+        """Nominal leg angular speed [rad/s]."""
+        return self.cycles[0].omega
+
+    @property
+    def slips(self) -> np.ndarray:
+        """Slip of every cycle [-]."""
+        return np.array([c.slip for c in self.cycles])
+
+    @classmethod
+    def constant(cls, n_cycles: int, params: StickSlipParams | None = None, **imu) -> "Scenario":
+        """``n_cycles`` identical cycles."""
+        if n_cycles < 1:
+            raise ValueError(f"cycles={n_cycles} must be >= 1")
+        return cls(cycles=(params or StickSlipParams(),) * int(n_cycles), **imu)
+
+    @classmethod
+    def per_cycle(cls, base: StickSlipParams | None = None, imu: dict | None = None, **arrays) -> "Scenario":
+        """One cycle per element of the given per-cycle arrays, e.g. ``slip=[...], kS=[...]``."""
+        base = base or StickSlipParams()
+        lengths = {len(np.atleast_1d(v)) for v in arrays.values()}
+        if len(lengths) != 1:
+            raise ValueError(f"per-cycle arrays must have one length, got {sorted(lengths)}")
+        n = lengths.pop()
+        cycles = tuple(
+            replace(base, **{k: float(np.atleast_1d(v)[j]) for k, v in arrays.items()}) for j in range(n)
+        )
+        return cls(cycles=cycles, **(imu or {}))
+
+    @classmethod
+    def from_functions(
+        cls,
+        n_cycles: int,
+        base: StickSlipParams | None = None,
+        imu: dict | None = None,
+        **functions: Callable[[float], float],
+    ) -> "Scenario":
+        """Parameters as functions of time [s], evaluated at each cycle's midstance time."""
+        base = base or StickSlipParams()
+        period = 2 * math.pi / (base.nL * base.omega)
+        t_mid = (np.arange(n_cycles) + 0.5) * period
+        arrays = {k: np.array([float(f(t)) for t in t_mid]) for k, f in functions.items()}
+        if not arrays:
+            return cls.constant(n_cycles, base, **(imu or {}))
+        return cls.per_cycle(base, imu, **arrays)
+
+    @classmethod
+    def from_segments(
+        cls, segments: Sequence[dict], base: StickSlipParams | None = None, imu: dict | None = None, effects=()
+    ) -> "Scenario":
+        """Segments of ``cycles`` cycles each with their slip (number or ``[start, end]`` ramp) and soil."""
+        base = base or StickSlipParams()
+        cycles: list[StickSlipParams] = []
+        for s, seg in enumerate(segments, start=1):
+            seg = dict(seg)
+            unknown = set(seg) - set(SEGMENT_FIELDS) - {"cycles"}
+            if unknown:
+                raise ValueError(f"segment {s}: unknown key(s) {sorted(unknown)}; allowed: cycles, {', '.join(SEGMENT_FIELDS)}")
+            if "cycles" not in seg:
+                raise ValueError(f"segment {s}: 'cycles' is required")
+            n = seg.pop("cycles")
+            if not isinstance(n, int) or n < 1:
+                raise ValueError(f"segment {s}: cycles={n!r} must be a positive integer")
+            ramps = {}
+            for key, value in seg.items():
+                if isinstance(value, (list, tuple)):
+                    if len(value) != 2:
+                        raise ValueError(f"segment {s}: {key} ramp must be [start, end], got {value!r}")
+                    ramps[key] = np.linspace(float(value[0]), float(value[1]), n)
+                else:
+                    ramps[key] = np.full(n, float(value))
+            try:
+                for j in range(n):
+                    cycles.append(replace(base, **{k: float(v[j]) for k, v in ramps.items()}))
+            except ValueError as exc:
+                raise ValueError(f"segment {s}: {exc}") from None
+        return cls(cycles=tuple(cycles), effects=tuple(effects), **(imu or {}))
+
+    @classmethod
+    def from_dict(cls, doc: dict) -> "Scenario":
+        """Build from a parsed scenario document (see the module docstring for the layout)."""
+        unknown = set(doc) - {"model", "imu", "segment", "effect"}
+        if unknown:
+            raise ValueError(f"unknown scenario section(s) {sorted(unknown)}; allowed: model, imu, segment, effect")
+        model = dict(doc.get("model", {}))
+        bad = set(model) - set(PARAM_NAMES)
+        if bad:
+            raise ValueError(f"[model]: unknown parameter(s) {sorted(bad)}")
+        base = StickSlipParams(**model)
+        imu_doc = dict(doc.get("imu", {}))
+        imu = {}
+        for key, target in (("rate", "rate"), ("noise", "noise_g"), ("seed", "seed"), ("dt", "dt")):
+            if key in imu_doc:
+                imu[target] = imu_doc.pop(key)
+        if imu_doc:
+            raise ValueError(f"[imu]: unknown key(s) {sorted(imu_doc)}; allowed: rate, noise, seed, dt")
+        segments = doc.get("segment")
+        if not segments:
+            raise ValueError("a scenario needs at least one [[segment]]")
+        effects = tuple(dict(e) for e in doc.get("effect", ()))
+        for e in effects:
+            if "name" not in e:
+                raise ValueError(f"[[effect]] without a name: {e}")
+        return cls.from_segments(segments, base=base, imu=imu, effects=effects)
+
+    def metadata(self) -> dict[str, str]:
+        """``key=value`` metadata describing the run, for the log's ``#`` comments."""
+        first = self.cycles[0]
+        meta = {
+            "nL": str(first.nL),
+            "omega": f"{first.omega:g}",
+            "rate": f"{self.rate:g}",
+            "noise_g": f"{self.noise_g:g}",
+            "seed": str(self.seed),
+            "dt": f"{self.dt:g}",
+            "cycles": str(len(self.cycles)),
+        }
+        for name in ("kappa", "MH", "mF", "lS"):
+            meta[name] = f"{getattr(first, name):g}"
+        for name in SEGMENT_FIELDS:
+            values = {getattr(c, name) for c in self.cycles}
+            meta[name] = f"{values.pop():g}" if len(values) == 1 else "varies"
+        if self.effects:
+            meta["effects"] = ";".join(
+                e["name"] + ":" + ",".join(f"{k}={v}" for k, v in e.items() if k != "name") for e in self.effects
+            )
+        return meta
