@@ -194,10 +194,11 @@ class Scenario:
             "omega": f"{first.omega:g}",
             "rate": f"{self.rate:g}",
             "noise_g": f"{self.noise_g:g}",
-            "seed": str(self.seed),
             "dt": f"{self.dt:g}",
             "cycles": str(len(self.cycles)),
         }
+        if self.seed is not None:
+            meta["seed"] = str(self.seed)
         for name in ("kappa", "MH", "mF", "lS"):
             meta[name] = f"{getattr(first, name):g}"
         for name in SEGMENT_FIELDS:
