@@ -19,7 +19,8 @@ def _propulsive_da(log, n_legs=4):
     out = []
     for cycle in np.unique(k):
         a = log.az[(k == cycle) & (phase >= 0)]
-        out.append((a.max() - a.min()) / G)
+        if len(a) > 10:  # a whole propulsive half, not a boundary sample rounded into the next cycle
+            out.append((a.max() - a.min()) / G)
     return np.array(out)
 
 
