@@ -1,0 +1,1011 @@
+"""The slipest CSV log format: write and read IMU + wheel-leg encoder logs.
+
+This module is the I/O edge of the package: it knows about files and streams,
+and nothing about estimation. Everything it returns is SI.
+
+Format
+------
+A UTF-8 text file (a leading byte order mark is ignored) with ``\\n`` (or
+``\\r\\n``) line endings::
+
+    # nL=4
+    # slip=0.25
+    # kS=1000
+    # any free-form comment
+    t,az,theta,slip
+    0.000000,9.810000,0.0000000,0.2500000
+    0.001000,9.812345,0.0006300,0.2500000
+
+* Lines starting with ``#`` are comments. A comment of the form
+  ``# key=value`` (key: a letter or ``_`` followed by letters, digits, ``_``,
+  ``.`` or ``-``) before the header is *metadata*; every comment, anywhere in
+  the file, is kept (``comments``) with its line number.
+* Blank lines are ignored.
+* The first other line is the header: comma-separated column names.
+  Required columns: ``t`` (s), ``az`` (m/s^2, vertical specific force as the
+  IMU reports it, gravity included, +9.81 at rest), ``theta`` (rad, the
+  wheel-leg angle). Optional: ``slip`` (dimensionless reference slip). Columns
+  may appear in any order; any other column is an *extra* column: allowed,
+  ignored by default, parsed as numbers on request (``extra_columns``).
+* Each data row has exactly as many comma-separated fields as the header.
+  Values are decimal numbers; ``nan`` (any case) is a valid value (a sensor
+  dropout) and is passed through as NaN. An empty field is malformed in a
+  required column and NaN in an optional or extra column.
+
+Precision written by :class:`LogWriter` (fixed-point decimals, by column):
+``t`` 6 (1 us), ``az`` 6 (1e-6 m/s^2), ``theta`` 7 (1e-7 rad), ``slip`` 7,
+extra columns 7 unless told otherwise (``decimals=``). The round-trip error
+is at most half a unit of the last decimal.
+
+Malformed rows raise :class:`LogFormatError` naming the file, the 1-based
+line number (every line counts: comments, blank lines and the header too) and
+what was wrong; with ``skip_bad=True`` they are counted and skipped instead
+(``LogReader.n_skipped``, ``LogReader.bad_rows``).
+
+Speed: both directions are vectorised with numpy (no per-row Python on the
+common path). The reader parses whole blocks of bytes with a fixed-point
+decimal parser; any block it cannot prove it parsed exactly (exponents,
+spaces, comments between rows, empty fields, bad rows, ...) is re-parsed by
+``numpy.loadtxt`` or, to find and name bad lines, line by line. The fast path
+therefore never hides a bad row.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import re
+from dataclasses import dataclass, field
+from typing import Iterator, Mapping, Sequence
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+
+__all__ = [
+    "REQUIRED_COLUMNS",
+    "OPTIONAL_COLUMNS",
+    "DEFAULT_DECIMALS",
+    "EXTRA_DECIMALS",
+    "LogFormatError",
+    "BadRow",
+    "LogMetadata",
+    "LogChunk",
+    "LogData",
+    "LogReader",
+    "LogWriter",
+    "read_log",
+]
+
+#: Columns every log must have: time [s], vertical specific force [m/s^2],
+#: wheel-leg angle [rad].
+REQUIRED_COLUMNS = ("t", "az", "theta")
+#: Columns that are understood when present: reference slip [-].
+OPTIONAL_COLUMNS = ("slip",)
+#: Decimals written for the known columns (fixed point).
+DEFAULT_DECIMALS = {"t": 6, "az": 6, "theta": 7, "slip": 7}
+#: Decimals written for any other column unless ``decimals=`` says otherwise.
+EXTRA_DECIMALS = 7
+
+_MAX_LINE_BYTES = 1 << 20  # longest line accepted, so memory stays bounded on garbage input
+_KEY_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_.\-]*$")
+_NAME_BAD_CHARS = set(",#\r\n\t ")
+
+
+class LogFormatError(ValueError):
+    """A log file is malformed.
+
+    ``source`` is the file name (or stream description), ``line`` the 1-based
+    line number (``None`` when the problem is not on one line) and ``reason``
+    what was wrong. ``str(err)`` is ``"<source>, line <n>: <reason>"``.
+    """
+
+    def __init__(self, reason: str, source: str | None = None, line: int | None = None):
+        self.reason = reason
+        self.source = source
+        self.line = line
+        where = source if source is not None else "<log>"
+        if line is not None:
+            where = f"{where}, line {line}"
+        super().__init__(f"{where}: {reason}")
+
+
+@dataclass(frozen=True)
+class BadRow:
+    """A skipped malformed row: its 1-based line number and the reason."""
+
+    line: int
+    reason: str
+
+
+class LogMetadata(dict):
+    """Metadata of a log: ``key -> value`` strings from ``# key=value`` lines.
+
+    A plain ``dict`` of str -> str, plus typed accessors that raise
+    :class:`LogFormatError` naming the file and line of a bad value.
+    ``lines[key]`` is the line the (last) value came from.
+    """
+
+    def __init__(self, items=(), *, source: str | None = None, lines: Mapping[str, int] | None = None):
+        super().__init__(items)
+        self.source = source
+        self.lines: dict[str, int] = dict(lines or {})
+
+    def _typed(self, key, conv, kind, default):
+        if key not in self:
+            return default
+        raw = self[key]
+        try:
+            return conv(raw)
+        except (TypeError, ValueError):
+            raise LogFormatError(
+                f"metadata {key}={raw!r} is not {kind}", self.source, self.lines.get(key)
+            ) from None
+
+    def get_int(self, key: str, default: int | None = None) -> int | None:
+        """Value of ``key`` as an int (``default`` when absent)."""
+        return self._typed(key, int, "an integer", default)
+
+    def get_float(self, key: str, default: float | None = None) -> float | None:
+        """Value of ``key`` as a float (``default`` when absent)."""
+        return self._typed(key, float, "a number", default)
+
+    @property
+    def n_legs(self) -> int | None:
+        """Number of legs of the wheel-leg (``# nL=``), or None."""
+        n = self.get_int("nL")
+        if n is not None and n < 1:
+            raise LogFormatError(f"metadata nL={n} must be >= 1", self.source, self.lines.get("nL"))
+        return n
+
+    @property
+    def slip(self) -> float | None:
+        """Commanded/reference slip of the whole log (``# slip=``) [-], or None."""
+        return self.get_float("slip")
+
+
+@dataclass(frozen=True)
+class LogChunk:
+    """A run of consecutive rows: ``t`` [s], ``az`` [m/s^2], ``theta`` [rad],
+    ``slip`` [-] (None when the log has no slip column), ``extras`` (name ->
+    array, only the extra columns that were asked for)."""
+
+    t: np.ndarray
+    az: np.ndarray
+    theta: np.ndarray
+    slip: np.ndarray | None
+    extras: dict
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+
+@dataclass
+class LogData:
+    """A whole log in memory (see :func:`read_log`)."""
+
+    metadata: LogMetadata
+    columns: tuple
+    t: np.ndarray
+    az: np.ndarray
+    theta: np.ndarray
+    slip: np.ndarray | None
+    extras: dict
+    comments: list = field(default_factory=list)
+    n_skipped: int = 0
+    bad_rows: list = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+
+# ---------------------------------------------------------------------------
+# Fast vectorised fixed-point parser
+# ---------------------------------------------------------------------------
+
+_U64 = np.uint64
+_ALL = 0xFFFFFFFFFFFFFFFF
+# Byte masks keeping the bytes j >= s of an 8-byte little-endian word.
+_KEEP8 = np.array([(_ALL << (8 * s)) & _ALL for s in range(9)][:8] + [0], dtype=np.uint64)
+_P10U = np.array([10**i for i in range(20)], dtype=np.uint64)
+_P10F = np.array([10.0**i for i in range(23)])
+_FAST_ALLOWED = b"0123456789.-,\n"
+_TWO53 = _U64(2**53)
+_PAD = b"0" * 16  # zero digits before the first field: harmless to the parser
+_SW1, _SW2, _SW3 = _U64(10 * 256 + 1), _U64(100 * 65536 + 1), _U64(10000 * 2**32 + 1)
+_MASK16, _MASK32 = _U64(0x00FF00FF00FF00FF), _U64(0x0000FFFF0000FFFF)
+
+
+def _swar8(w):
+    """In place: words of eight digit values (one per byte, first byte most
+    significant) -> the integers they spell (multiply-shift SWAR; the
+    products wrap modulo 2**64 by design)."""
+    w *= _SW1
+    w >>= _U64(8)
+    w &= _MASK16
+    w *= _SW2
+    w >>= _U64(16)
+    w &= _MASK32
+    w *= _SW3
+    w >>= _U64(32)
+    return w
+
+
+def _fast_parse(block: bytes, ncols: int):
+    """Parse complete data lines of plain decimals into an (nrows, ncols) array.
+
+    Returns ``(array, None)`` on success, ``(None, "values")`` when the line
+    structure is right (each line has ``ncols`` comma-separated fields, no
+    comments nor blank lines) but some field is not a plain decimal this
+    parser proves exact, or ``(None, "structure")`` otherwise. Plain decimals:
+    ``-?digits?.?digits?`` with at least one digit, at most 16 characters and
+    a mantissa below 2**53 (so the value is the correctly rounded double,
+    identical to ``float()``), or ``nan`` in any case.
+
+    Each field is right-aligned in a 16-byte window ending at its separator;
+    the digits are combined eight at a time inside uint64 words (SWAR), the
+    bytes of the previous fields are removed with a modulo by a power of ten,
+    and the decimal point is removed arithmetically.
+    """
+    rest = block.translate(None, _FAST_ALLOWED)
+    has_nan = False
+    if rest:
+        if rest.translate(None, b"naNA") or b"#" in block:
+            return None, _structure_status(block, ncols)
+        if rest.translate(None, b"na"):
+            block = block.lower()
+        n_nan = block.count(b"nan")
+        block = block.replace(b"nan", b"n")
+        if block.translate(None, _FAST_ALLOWED + b"n") or block.count(b"n") != n_nan:
+            return None, _structure_status(block, ncols)
+        has_nan = True
+    a = np.frombuffer(_PAD + block, dtype=np.uint8)
+    sepb = a < 45  # ',' and '\n' are the only allowed bytes below '-'
+    sep = np.flatnonzero(sepb)
+    nf = sep.size
+    if nf == 0 or nf % ncols:
+        return None, "structure"
+    seps = a[sep].reshape(-1, ncols)
+    if not ((seps[:, :-1] == 44).all() and (seps[:, -1] == 10).all()):
+        return None, "structure"
+    lens = np.diff(sep, prepend=15)
+    lens -= 1
+    if lens.min() < 1 or lens.max() > 16:
+        return None, "values"
+    z = a - np.uint8(48)
+    z *= z < 10  # digit values; every other byte 0
+    w = _swar8(sliding_window_view(z, 16)[sep - 16].view(np.uint64))
+    lo = np.minimum(lens, 8)
+    val = w[:, 0] % _P10U[lens - lo]
+    val *= _U64(100000000)
+    val += w[:, 1] % _P10U[lo]
+    # the decimal point counted as a zero digit: remove it
+    dp = np.flatnonzero(a == 46)
+    if dp.size == nf and (dp < sep).all() and (dp[1:] > sep[:-1]).all():
+        frac = sep - dp
+        frac -= 1
+        p = _P10U[frac]
+        hi = val // (p * _U64(10))
+        val -= hi * _U64(9) * p
+        ndot = 1
+    elif dp.size:
+        fd = np.searchsorted(sep, dp)
+        if (np.diff(fd) == 0).any():
+            return None, "values"
+        frac = np.zeros(nf, dtype=np.intp)
+        frac[fd] = sep[fd] - dp - 1
+        p = _P10U[frac[fd]]
+        v = val[fd]
+        hi = v // (p * _U64(10))
+        val[fd] = v - hi * _U64(9) * p
+        ndot = np.zeros(nf, dtype=np.intp)
+        ndot[fd] = 1
+    else:
+        frac = np.zeros(nf, dtype=np.intp)
+        ndot = 0
+    nneg = 0
+    has_neg = b"-" in block
+    if has_neg:
+        nneg = a[sep - lens] == 45  # a minus sign is only allowed first in its field
+        if int(np.count_nonzero(nneg)) != block.count(b"-"):
+            return None, "values"
+    if has_nan:
+        fn = np.searchsorted(sep, np.flatnonzero(a == 110))
+        if (lens[fn] != 1).any():
+            return None, "values"
+    if (lens - ndot - nneg).min() < 1:  # no digit (a lone 'n' counts as one)
+        return None, "values"
+    if (val >= _TWO53).any():
+        return None, "values"
+    out = val.astype(np.float64)
+    out /= _P10F[frac]
+    if has_neg:
+        np.negative(out, out=out, where=nneg)
+    if has_nan:
+        out[fn] = np.nan
+    return out.reshape(-1, ncols), None
+
+
+def _structure_status(block: bytes, ncols: int) -> str:
+    """'values' if every line has exactly ncols fields and no line is blank
+    or a comment, else 'structure'."""
+    if b"#" in block:
+        return "structure"
+    a = np.frombuffer(block, dtype=np.uint8)
+    sep = np.flatnonzero((a == 44) | (a == 10))
+    if sep.size == 0 or sep.size % ncols:
+        return "structure"
+    seps = a[sep].reshape(-1, ncols)
+    if not ((seps[:, :-1] == 44).all() and (seps[:, -1] == 10).all()):
+        return "structure"
+    # blank line: a newline right after a newline (or at the start)
+    nl = sep[ncols - 1 :: ncols]
+    if nl[0] == 0 or (np.diff(nl) == 1).any():
+        return "structure"
+    return "values"
+
+
+# ---------------------------------------------------------------------------
+# Vectorised fixed-point formatter
+# ---------------------------------------------------------------------------
+
+_ASCII0 = _U64(0x3030303030303030)
+_SPECIAL = {
+    name: np.frombuffer(b"\0" * (8 - len(name)) + name, dtype=np.uint64)[0]
+    for name in (b"nan", b"inf")
+}
+_INT_LIMIT = 1e8  # integer parts must have at most 8 digits on the fast path
+_FAST_MAX_DECIMALS = 7
+_LASTBYTE1 = _U64(1 << 56)
+_H7F = _U64(0x7F7F7F7F7F7F7F7F)
+_H80 = _U64(0x8080808080808080)
+
+
+def _digit_bytes(v):
+    """uint64 values < 1e8 -> words holding their 8 decimal digits (values
+    0-9, one per byte, zero-padded, first byte = most significant digit)."""
+    hi = v // _U64(10000)
+    w = hi | ((v - hi * _U64(10000)) << _U64(32))
+    c = ((w * _U64(5243)) >> _U64(19)) & _U64(0x0000007F0000007F)  # lanes // 100
+    w = c | ((w - c * _U64(100)) << _U64(16))
+    e = ((w * _U64(103)) >> _U64(10)) & _U64(0x000F000F000F000F)  # lanes // 10
+    return e | ((w - e * _U64(10)) << _U64(8))
+
+
+def _ascii_int(dw):
+    """Digit words -> ASCII, with the leading zeros (all but the last digit)
+    turned into NUL bytes, which the formatter deletes."""
+    s = dw | _LASTBYTE1
+    s |= s << _U64(8)  # smear "a digit was nonzero" towards the later digits
+    s |= s << _U64(16)
+    s |= s << _U64(32)
+    s += _H7F  # high bit of every nonzero byte
+    s &= _H80
+    s >>= _U64(7)
+    s *= _U64(0x30)
+    s += dw
+    return s
+
+
+def _format_fast(cols: Sequence[np.ndarray], decimals: Sequence[int]) -> bytes | None:
+    """Format equal-length float64 columns as CSV rows (fixed point, at most
+    7 decimals); None if some value needs the slow path (|x| >= 1e8).
+
+    Each field is three little-endian words: [separator, sign], [8 integer
+    digits], ['.', 7 decimals]; unused bytes are NUL and deleted at the end.
+    The first separator is the newline of the previous row.
+    """
+    n = cols[0].shape[0]
+    rows = np.empty((n, 3 * len(cols)), dtype=np.uint64)
+    for c, (x, d) in enumerate(zip(cols, decimals)):
+        fin = np.isfinite(x)
+        allfin = bool(fin.all())
+        ax = np.abs(x) if allfin else np.where(fin, np.abs(x), 0.0)
+        scale = 10.0**d
+        sf = np.rint(ax * scale)
+        if not (sf < _INT_LIMIT * scale).all():
+            return None
+        s = sf.astype(np.uint64)
+        pd = _U64(10**d)
+        ip = s // pd
+        iw = _ascii_int(_digit_bytes(ip))
+        neg = (x < 0) & (s != 0)
+        if not allfin:
+            iw = np.where(fin, iw, np.where(np.isnan(x), _SPECIAL[b"nan"], _SPECIAL[b"inf"]))
+            neg |= x == -np.inf
+        w0 = rows[:, 3 * c]
+        np.multiply(neg, _U64(45 << 8), out=w0)
+        w0 |= _U64(10 if c == 0 else 44)
+        rows[:, 3 * c + 1] = iw
+        if d:
+            fw = _digit_bytes(s - ip * pd)
+            fw += _ASCII0
+            fw &= _KEEP8[8 - d]  # the last d digits; byte 0 becomes the point
+            fw |= _U64(46)
+            if not allfin:
+                fw[~fin] = 0
+            rows[:, 3 * c + 2] = fw
+        else:
+            rows[:, 3 * c + 2] = 0
+    return rows.tobytes().translate(None, b"\0")[1:] + b"\n"
+
+
+def _format_slow(cols: Sequence[np.ndarray], decimals: Sequence[int]) -> bytes:
+    fmt = ",".join(f"%.{d}f" for d in decimals) + "\n"
+    block = np.column_stack(cols)
+    return ((fmt * block.shape[0]) % tuple(block.ravel().tolist())).encode("ascii")
+
+
+def _format_rows(cols: Sequence[np.ndarray], decimals: Sequence[int]) -> bytes:
+    if cols[0].shape[0] == 0:
+        return b""
+    if max(decimals) <= _FAST_MAX_DECIMALS:
+        out = _format_fast(cols, decimals)
+        if out is not None:
+            return out
+    return _format_slow(cols, decimals)
+
+
+# ---------------------------------------------------------------------------
+# Writer
+# ---------------------------------------------------------------------------
+
+
+def _is_text_stream(stream) -> bool:
+    if isinstance(stream, io.TextIOBase):
+        return True
+    if isinstance(stream, (io.RawIOBase, io.BufferedIOBase)):
+        return False
+    return hasattr(stream, "encoding")
+
+
+def _check_column_names(columns: Sequence[str]) -> tuple:
+    cols = tuple(columns)
+    for name in cols:
+        if not isinstance(name, str) or not name or (set(name) & _NAME_BAD_CHARS):
+            raise ValueError(f"invalid column name {name!r}: must be non-empty, without ',', '#', spaces or newlines")
+    dup = sorted({c for c in cols if cols.count(c) > 1})
+    if dup:
+        raise ValueError(f"duplicate column name(s): {', '.join(dup)}")
+    missing = [c for c in REQUIRED_COLUMNS if c not in cols]
+    if missing:
+        raise ValueError(f"columns must include {', '.join(REQUIRED_COLUMNS)}; missing: {', '.join(missing)}")
+    return cols
+
+
+class LogWriter:
+    """Write a log: metadata comments, header, then rows in chunks.
+
+    ``target`` is a path (the file is created; an existing file is refused
+    unless ``overwrite=True``, so a log is never overwritten by mistake) or an
+    already open text or binary stream (e.g. ``sys.stdout``), which is left
+    open by :meth:`close`.
+
+    ``columns`` is the header, in order; it must contain ``t``, ``az``,
+    ``theta``. ``metadata`` is written as ``# key=value`` lines and
+    ``comments`` as ``# text`` lines before the header. ``decimals`` overrides
+    the fixed-point decimals per column (see :data:`DEFAULT_DECIMALS`).
+    The header is written at construction, so a log with no rows is valid.
+
+    Writing is vectorised: 3.6 M rows format in about a second. Call
+    :meth:`flush` after each chunk (or pass ``flush_each_write=True``) so a
+    live recording loses nothing when the process is interrupted.
+    """
+
+    def __init__(
+        self,
+        target,
+        columns: Sequence[str] = ("t", "az", "theta"),
+        *,
+        metadata: Mapping[str, object] | None = None,
+        comments: Sequence[str] = (),
+        decimals: Mapping[str, int] | None = None,
+        overwrite: bool = False,
+        flush_each_write: bool = False,
+    ):
+        self.columns = _check_column_names(columns)
+        dec = dict(DEFAULT_DECIMALS)
+        if decimals:
+            for k, v in decimals.items():
+                if k not in self.columns:
+                    raise ValueError(f"decimals given for unknown column {k!r}")
+                if not isinstance(v, (int, np.integer)) or not 0 <= v <= 17:
+                    raise ValueError(f"decimals for column {k!r} must be an int in [0, 17], got {v!r}")
+                dec[k] = int(v)
+        self.decimals = tuple(dec.get(c, EXTRA_DECIMALS) for c in self.columns)
+        self.flush_each_write = flush_each_write
+        self.rows_written = 0
+        self._closed = False
+        lines = []
+        for key, value in (metadata or {}).items():
+            key = str(key)
+            sval = str(value)
+            if not _KEY_RE.match(key):
+                raise ValueError(f"invalid metadata key {key!r}: use letters, digits, '_', '.', '-'")
+            if "\n" in sval or "\r" in sval:
+                raise ValueError(f"metadata value for {key!r} must be one line")
+            lines.append(f"# {key}={sval}\n")
+        for text in comments:
+            lines.append(self._comment_line(text))
+        lines.append(",".join(self.columns) + "\n")
+        # everything is checked: only now create the file
+        if isinstance(target, (str, bytes, os.PathLike)):
+            self.name = os.fsdecode(target)
+            self._stream = open(target, "wb" if overwrite else "xb")
+            self._owns = True
+            self._text = False
+        else:
+            self.name = getattr(target, "name", "<stream>")
+            self._stream = target
+            self._owns = False
+            self._text = _is_text_stream(target)
+        try:
+            self._write("".join(lines).encode("utf-8"))
+        except BaseException:
+            self.close()
+            raise
+
+    @staticmethod
+    def _comment_line(text: str) -> str:
+        text = str(text)
+        if "\n" in text or "\r" in text:
+            raise ValueError("a comment must be one line")
+        return f"# {text}\n"
+
+    def _write(self, data: bytes) -> None:
+        if self._closed:
+            raise ValueError(f"{self.name}: write to a closed LogWriter")
+        if self._text:
+            self._stream.write(data.decode("utf-8"))
+        else:
+            self._stream.write(data)
+
+    def comment(self, text: str) -> None:
+        """Write a ``# text`` comment line (between rows is fine)."""
+        self._write(self._comment_line(text).encode("utf-8"))
+
+    def write(self, t, az, theta, slip=None, **extras) -> int:
+        """Append rows: ``t`` [s], ``az`` [m/s^2], ``theta`` [rad], ``slip``
+        [-] and extra columns by name, as equal-length 1-D arrays (or
+        scalars). Every header column must be given, no other. Returns the
+        number of rows written."""
+        given = {"t": t, "az": az, "theta": theta, **extras}
+        if slip is not None:
+            given["slip"] = slip
+        unknown = [k for k in given if k not in self.columns]
+        missing = [k for k in self.columns if k not in given]
+        if unknown or missing:
+            parts = []
+            if missing:
+                parts.append(f"missing column(s) {', '.join(missing)}")
+            if unknown:
+                parts.append(f"column(s) not in the header {', '.join(unknown)}")
+            raise ValueError(f"{self.name}: write(): {'; '.join(parts)} (header: {','.join(self.columns)})")
+        cols = [np.atleast_1d(np.asarray(given[c], dtype=np.float64)) for c in self.columns]
+        return self._write_cols(cols)
+
+    def write_array(self, rows) -> int:
+        """Append rows given as an (n, ncolumns) array in header order."""
+        arr = np.asarray(rows, dtype=np.float64)
+        if arr.ndim != 2 or arr.shape[1] != len(self.columns):
+            raise ValueError(
+                f"{self.name}: write_array() needs shape (n, {len(self.columns)}) "
+                f"for columns {','.join(self.columns)}, got {arr.shape}"
+            )
+        return self._write_cols([arr[:, i] for i in range(arr.shape[1])])
+
+    def _write_cols(self, cols) -> int:
+        n = cols[0].shape[0]
+        for name, c in zip(self.columns, cols):
+            if c.ndim != 1 or c.shape[0] != n:
+                raise ValueError(
+                    f"{self.name}: column {name!r} has shape {c.shape}, expected ({n},) like {self.columns[0]!r}"
+                )
+        step = 65536
+        for i in range(0, n, step):
+            self._write(_format_rows([c[i : i + step] for c in cols], self.decimals))
+        self.rows_written += n
+        if self.flush_each_write:
+            self.flush()
+        return n
+
+    def flush(self, fsync: bool = False) -> None:
+        """Push written rows to the OS (and to disk with ``fsync=True``)."""
+        if self._closed:
+            return
+        self._stream.flush()
+        if fsync:
+            try:
+                os.fsync(self._stream.fileno())
+            except (AttributeError, OSError, io.UnsupportedOperation):
+                pass
+
+    def close(self) -> None:
+        """Flush, and close the file if this writer opened it."""
+        if self._closed:
+            return
+        try:
+            self._stream.flush()
+        finally:
+            self._closed = True
+            if self._owns:
+                self._stream.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+# ---------------------------------------------------------------------------
+# Reader
+# ---------------------------------------------------------------------------
+
+
+class LogReader:
+    """Read a log, whole (:meth:`read_all`) or in bounded-memory chunks
+    (:meth:`iter_chunks`).
+
+    ``source``: a path, or an open text or binary stream (left open).
+    The comment lines and header are read at construction: ``metadata``,
+    ``columns``, ``has_slip`` and ``extra_names`` are available at once.
+
+    ``extra_columns``: False (default) ignores extra columns (any content,
+    only the field count is checked); True parses them all as numbers; a
+    list of names parses those. ``skip_bad``: count and skip malformed rows
+    instead of raising :class:`LogFormatError`; ``n_skipped`` counts them and
+    ``bad_rows`` keeps the first ``max_bad_reported`` (line, reason).
+    ``block_bytes``: how much is read and parsed at a time (memory bound).
+
+    Errors in the rows are raised while iterating, when the block holding
+    them is parsed (rows before it have already been yielded). A line longer
+    than 1 MiB is an error, so garbage input cannot exhaust memory.
+    """
+
+    def __init__(
+        self,
+        source,
+        *,
+        skip_bad: bool = False,
+        extra_columns: bool | Sequence[str] = False,
+        max_bad_reported: int = 20,
+        block_bytes: int = 1 << 20,
+    ):
+        self.skip_bad = skip_bad
+        self.max_bad_reported = max_bad_reported
+        self.n_skipped = 0
+        self.bad_rows: list[BadRow] = []
+        self.comments: list[tuple[int, str]] = []
+        self.n_rows = 0
+        self._block_bytes = max(int(block_bytes), 1024)
+        if isinstance(source, (str, bytes, os.PathLike)):
+            self.source = os.fsdecode(source)
+            self._stream = open(source, "rb")
+            self._owns = True
+        else:
+            self.source = str(getattr(source, "name", "<stream>"))
+            self._stream = source
+            self._owns = False
+        self._text = _is_text_stream(self._stream)
+        self._pending = b""
+        self._eof = False
+        self._line = 0  # number of lines consumed so far
+        self._started = False
+        try:
+            self._read_preamble()
+            self._setup_columns(extra_columns)
+        except BaseException:
+            self.close()
+            raise
+
+    # -- raw input -------------------------------------------------------
+    def _read_raw(self) -> bytes:
+        data = self._stream.read(self._block_bytes)
+        if not data:
+            return b""
+        if self._text:
+            data = data.encode("utf-8")
+        return data
+
+    def _next_block(self) -> bytes:
+        """Complete lines (ending with \\n), at least one, or b'' at EOF."""
+        while True:
+            if not self._eof:
+                data = self._read_raw()
+                if data:
+                    self._pending += data
+                else:
+                    self._eof = True
+            cut = self._pending.rfind(b"\n") + 1
+            if cut == 0 and self._eof and self._pending:
+                self._pending += b"\n"
+                cut = len(self._pending)
+            if cut:
+                block, self._pending = self._pending[:cut], self._pending[cut:]
+                return block
+            if self._eof:
+                return b""
+            if len(self._pending) > _MAX_LINE_BYTES:
+                raise LogFormatError(
+                    f"line longer than {_MAX_LINE_BYTES} bytes (is this a text log?)", self.source, self._line + 1
+                )
+
+    def _read_preamble(self) -> None:
+        meta: dict[str, str] = {}
+        lines: dict[str, int] = {}
+        header = None
+        buf = b""
+        while header is None:
+            block = self._next_block()
+            if not block:
+                break
+            buf = block
+            start = 0
+            while True:
+                end = buf.find(b"\n", start)
+                if end < 0:
+                    break
+                raw = buf[start:end]
+                start = end + 1
+                self._line += 1
+                if self._line == 1 and raw.startswith(b"\xef\xbb\xbf"):
+                    raw = raw[3:]  # UTF-8 byte order mark written by some editors
+                text = self._decode(raw, self._line).strip()
+                if not text:
+                    continue
+                if text.startswith("#"):
+                    body = text[1:].strip()
+                    self.comments.append((self._line, body))
+                    key, eq, value = body.partition("=")
+                    key = key.strip()
+                    if eq and _KEY_RE.match(key):
+                        meta[key] = value.strip()
+                        lines[key] = self._line
+                    continue
+                header = text
+                self.header_line = self._line
+                break
+            if header is not None:
+                self._pending = buf[start:] + self._pending
+        if header is None:
+            raise LogFormatError(
+                "no header line (expected column names, e.g. 't,az,theta')", self.source, self._line or None
+            )
+        self.metadata = LogMetadata(meta, source=self.source, lines=lines)
+        names = [h.strip() for h in header.split(",")]
+        self.columns = tuple(names)
+        bad = [n for n in names if not n]
+        if bad:
+            raise LogFormatError(f"empty column name in header {header!r}", self.source, self.header_line)
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise LogFormatError(f"duplicate column(s) {', '.join(dup)} in header", self.source, self.header_line)
+        missing = [c for c in REQUIRED_COLUMNS if c not in names]
+        if missing:
+            raise LogFormatError(
+                f"missing required column(s) {', '.join(missing)} in header {header!r} "
+                f"(required: {', '.join(REQUIRED_COLUMNS)})",
+                self.source,
+                self.header_line,
+            )
+
+    def _decode(self, raw: bytes, line: int) -> str:
+        try:
+            return raw.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise LogFormatError(f"not valid UTF-8 text ({exc.reason})", self.source, line) from None
+
+    def _setup_columns(self, extra_columns) -> None:
+        names = self.columns
+        known = set(REQUIRED_COLUMNS) | set(OPTIONAL_COLUMNS)
+        self.extra_names = tuple(n for n in names if n not in known)
+        self.has_slip = "slip" in names
+        if extra_columns is True:
+            extras = self.extra_names
+        elif extra_columns is False or extra_columns is None:
+            extras = ()
+        else:
+            extras = tuple(extra_columns)
+            unknown = [e for e in extras if e not in self.extra_names]
+            if unknown:
+                raise LogFormatError(
+                    f"extra column(s) {', '.join(unknown)} asked for but not in the header "
+                    f"(extra columns: {', '.join(self.extra_names) or 'none'})",
+                    self.source,
+                    self.header_line,
+                )
+        self.loaded_extras = extras
+        sel = list(REQUIRED_COLUMNS) + (["slip"] if self.has_slip else []) + list(extras)
+        self._sel_names = tuple(sel)
+        self._sel_idx = np.array([names.index(n) for n in sel], dtype=np.intp)
+        self._required = np.array([n in REQUIRED_COLUMNS for n in sel])
+        self._ncols = len(names)
+        self._identity = np.array_equal(self._sel_idx, np.arange(len(names)))
+
+    # -- parsing ---------------------------------------------------------
+    def _bad(self, line: int, reason: str) -> None:
+        if not self.skip_bad:
+            raise LogFormatError(reason, self.source, line)
+        self.n_skipped += 1
+        if len(self.bad_rows) < self.max_bad_reported:
+            self.bad_rows.append(BadRow(line, reason))
+
+    def _parse_block(self, block: bytes, first_line: int):
+        """(nrows, nselected) array of one block of complete lines, and the
+        number of lines in the block."""
+        if b"\r" in block:
+            block = block.replace(b"\r\n", b"\n")
+        arr, status = _fast_parse(block, self._ncols)
+        if arr is not None:  # one row per line
+            return (arr if self._identity else arr[:, self._sel_idx]), arr.shape[0]
+        nlines = block.count(b"\n")
+        if status == "values":
+            try:
+                text = block.decode("utf-8")
+                res = np.loadtxt(
+                    text.splitlines(),
+                    delimiter=",",
+                    usecols=self._sel_idx.tolist(),
+                    dtype=np.float64,
+                    ndmin=2,
+                    comments=None,
+                )
+                if res.shape[0] == nlines:
+                    return res, nlines
+            except (ValueError, UnicodeDecodeError):
+                pass
+        return self._parse_lines(block, first_line), nlines
+
+    def _parse_lines(self, block: bytes, first_line: int) -> np.ndarray:
+        ncols = self._ncols
+        sel = self._sel_idx.tolist()
+        req = self._required.tolist()
+        names = self._sel_names
+        rows = []
+        nan = float("nan")
+        for i, raw in enumerate(block.split(b"\n")[:-1]):
+            line = first_line + i
+            try:
+                text = raw.decode("utf-8")
+            except UnicodeDecodeError as exc:
+                self._bad(line, f"not valid UTF-8 text ({exc.reason})")
+                continue
+            stripped = text.strip()
+            if not stripped:
+                continue
+            if stripped.startswith("#"):
+                self.comments.append((line, stripped[1:].strip()))
+                continue
+            fields = text.split(",")
+            if len(fields) != ncols:
+                self._bad(
+                    line,
+                    f"expected {ncols} fields ({','.join(self.columns)}), found {len(fields)}",
+                )
+                continue
+            row = []
+            ok = True
+            for j, r, name in zip(sel, req, names):
+                f = fields[j].strip()
+                if not f:
+                    if r:
+                        self._bad(line, f"empty field in required column {name!r}")
+                        ok = False
+                        break
+                    row.append(nan)
+                    continue
+                try:
+                    row.append(float(f))
+                except ValueError:
+                    self._bad(line, f"column {name!r}: {f[:40]!r} is not a number")
+                    ok = False
+                    break
+            if ok:
+                rows.append(row)
+        if not rows:
+            return np.empty((0, len(sel)), dtype=np.float64)
+        return np.array(rows, dtype=np.float64)
+
+    def _iter_blocks(self) -> Iterator[np.ndarray]:
+        if self._started:
+            raise RuntimeError(f"{self.source}: a LogReader can be iterated only once")
+        self._started = True
+        try:
+            while True:
+                block = self._next_block()
+                if not block:
+                    return
+                first = self._line + 1
+                arr, nlines = self._parse_block(block, first)
+                self._line += nlines
+                if arr.shape[0]:
+                    self.n_rows += arr.shape[0]
+                    yield arr
+        finally:
+            self.close()  # at the end, on an error, or when the caller stops early
+
+    def _chunk(self, arr: np.ndarray) -> LogChunk:
+        return self._columns_chunk(np.ascontiguousarray(arr.T))
+
+    def _columns_chunk(self, arr) -> LogChunk:
+        k = len(REQUIRED_COLUMNS)
+        slip = arr[k] if self.has_slip else None
+        k += self.has_slip
+        extras = {name: arr[k + i] for i, name in enumerate(self.loaded_extras)}
+        return LogChunk(arr[0], arr[1], arr[2], slip, extras)
+
+    def iter_chunks(self, chunk_rows: int = 65536) -> Iterator[LogChunk]:
+        """Yield :class:`LogChunk` s of exactly ``chunk_rows`` rows (the last
+        one may be shorter). Memory is bounded by one input block (1 MiB by default)
+        plus one chunk, whatever the size of the log."""
+        if chunk_rows < 1:
+            raise ValueError(f"chunk_rows must be >= 1, got {chunk_rows}")
+        parts: list[np.ndarray] = []
+        have = 0
+        for arr in self._iter_blocks():
+            parts.append(arr)
+            have += arr.shape[0]
+            if have < chunk_rows:
+                continue
+            joined = parts[0] if len(parts) == 1 else np.concatenate(parts)
+            start = 0
+            while have - start >= chunk_rows:
+                yield self._chunk(joined[start : start + chunk_rows])
+                start += chunk_rows
+            parts = [joined[start:]] if start < have else []
+            have -= start
+        if have:
+            yield self._chunk(parts[0] if len(parts) == 1 else np.concatenate(parts))
+
+    def read_all(self) -> LogData:
+        """Read every remaining row into a :class:`LogData`."""
+        parts = list(self._iter_blocks())
+        ncol = len(self._sel_names)
+        if parts:
+            # one copy per column, straight from the parsed blocks
+            cols = [np.concatenate([blk[:, j] for blk in parts]) for j in range(ncol)]
+        else:
+            cols = [np.empty(0, dtype=np.float64) for _ in range(ncol)]
+        del parts
+        ch = self._columns_chunk(cols)
+        return LogData(
+            metadata=self.metadata,
+            columns=self.columns,
+            t=ch.t,
+            az=ch.az,
+            theta=ch.theta,
+            slip=ch.slip,
+            extras=ch.extras,
+            comments=list(self.comments),
+            n_skipped=self.n_skipped,
+            bad_rows=list(self.bad_rows),
+        )
+
+    def close(self) -> None:
+        """Close the file if this reader opened it (done automatically once
+        the rows are read, or reading failed)."""
+        if getattr(self, "_owns", False) and not self._stream.closed:
+            self._stream.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def read_log(
+    source,
+    *,
+    skip_bad: bool = False,
+    extra_columns: bool | Sequence[str] = False,
+    max_bad_reported: int = 20,
+) -> LogData:
+    """Read a whole log (path or open stream) into a :class:`LogData`.
+
+    See :class:`LogReader` for the options and the errors raised.
+    """
+    with LogReader(
+        source, skip_bad=skip_bad, extra_columns=extra_columns, max_bad_reported=max_bad_reported
+    ) as reader:
+        return reader.read_all()

@@ -1,0 +1,534 @@
+"""Tests of slipest.io.log_csv: the CSV log format, on real files."""
+
+import io
+import math
+import os
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from slipest.io.log_csv import (
+    DEFAULT_DECIMALS,
+    LogFormatError,
+    LogMetadata,
+    LogReader,
+    LogWriter,
+    read_log,
+)
+
+# half a unit of the last written decimal, plus float64 rounding of the value
+TOL = {c: 0.5 * 10.0 ** -d * (1 + 1e-9) for c, d in DEFAULT_DECIMALS.items()}
+
+
+def sample_arrays(n=5000, seed=0, t0=0.0):
+    rng = np.random.default_rng(seed)
+    t = t0 + np.cumsum(rng.uniform(0.0009, 0.0011, n))
+    az = 9.81 + rng.normal(0, 20, n)
+    theta = -0.3 + 0.63 * (t - t0) + rng.normal(0, 1e-3, n)
+    slip = rng.uniform(-1, 1, n)
+    return t, az, theta, slip
+
+
+def assert_close(got, want, col):
+    np.testing.assert_allclose(got, want, rtol=0, atol=TOL[col] + 1e-15 * np.nanmax(np.abs(want)))
+
+
+def write_text(path, text):
+    with open(path, "w", encoding="utf-8", newline="") as f:
+        f.write(text)
+    return str(path)
+
+
+# ---------------------------------------------------------------------------
+# round trip
+# ---------------------------------------------------------------------------
+
+
+def test_round_trip_with_metadata(tmp_path):
+    t, az, theta, slip = sample_arrays(20000)
+    path = tmp_path / "run.csv"
+    with LogWriter(path, ("t", "az", "theta", "slip"), metadata={"nL": 4, "slip": 0.25, "kS": 1000}) as w:
+        for i in range(0, t.size, 3000):  # in chunks, as a recorder would
+            w.write(t[i : i + 3000], az[i : i + 3000], theta[i : i + 3000], slip=slip[i : i + 3000])
+        assert w.rows_written == t.size
+    log = read_log(path)
+    assert len(log) == t.size
+    assert log.columns == ("t", "az", "theta", "slip")
+    assert_close(log.t, t, "t")
+    assert_close(log.az, az, "az")
+    assert_close(log.theta, theta, "theta")
+    assert_close(log.slip, slip, "slip")
+    assert log.metadata == {"nL": "4", "slip": "0.25", "kS": "1000"}
+    assert log.metadata.n_legs == 4
+    assert log.metadata.slip == 0.25
+    assert log.metadata.get_float("kS") == 1000.0
+    assert log.n_skipped == 0 and log.bad_rows == []
+
+
+def test_file_text_is_plain_fixed_point(tmp_path):
+    path = tmp_path / "a.csv"
+    with LogWriter(path, metadata={"nL": 4}, comments=["rover A, run 3"]) as w:
+        w.write([0.0, 0.001, 3599.999], [9.81, -0.5, np.nan], [0.0, -1e-9, 2268.123456789])
+    assert path.read_text() == (
+        "# nL=4\n"
+        "# rover A, run 3\n"
+        "t,az,theta\n"
+        "0.000000,9.810000,0.0000000\n"
+        "0.001000,-0.500000,0.0000000\n"
+        "3599.999000,nan,2268.1234568\n"
+    )
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(
+        st.tuples(
+            st.floats(min_value=0, max_value=1e7, allow_nan=False),
+            st.one_of(
+                st.floats(min_value=-1e4, max_value=1e4),
+                st.sampled_from([math.nan, math.inf, -math.inf]),
+            ),
+            st.floats(min_value=-1e6, max_value=1e6, allow_nan=False),
+        ),
+        min_size=0,
+        max_size=60,
+    )
+)
+def test_round_trip_property(rows):
+    arr = np.array(rows, dtype=np.float64).reshape(-1, 3)
+    buf = io.StringIO()
+    LogWriter(buf).write_array(arr)
+    log = read_log(io.StringIO(buf.getvalue()))
+    assert len(log) == arr.shape[0]
+    for j, col in enumerate(("t", "az", "theta")):
+        got, want = getattr(log, col), arr[:, j]
+        fin = np.isfinite(want)
+        np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+        np.testing.assert_array_equal(got[np.isinf(want)], want[np.isinf(want)])
+        np.testing.assert_allclose(got[fin], want[fin], rtol=1e-15, atol=TOL[col])
+
+
+def test_large_values_use_exact_slow_path(tmp_path):
+    """Epoch timestamps (1.7e9 s) do not fit the fast formatter: still right."""
+    t, az, theta, _ = sample_arrays(3000, t0=1.7e9)
+    path = tmp_path / "epoch.csv"
+    with LogWriter(path) as w:
+        w.write(t, az, theta)
+    log = read_log(path)
+    np.testing.assert_allclose(log.t, t, rtol=0, atol=5.1e-7)
+    assert np.all(np.diff(log.t) > 0)
+    assert_close(log.az, az, "az")
+
+
+def test_reader_values_equal_python_float(tmp_path):
+    """Whatever path parses a block, values are exactly float(text)."""
+    rng = np.random.default_rng(5)
+    fields = []
+    for _ in range(3000):
+        x = rng.normal(0, 10.0 ** rng.integers(-3, 6))
+        fmt = rng.choice(["%.6f", "%.3f", "%.10g", "%r", "%.2e", "%d"])
+        fields.append(fmt % (int(x) if fmt == "%d" else x))
+    fields += ["nan", "NaN", "-0.0", "5.", "-.25", "0007", "1e3", "+4.5", " 3.25 ", "inf"]
+    lines = [f"{i}.0,{f},0.5" for i, f in enumerate(fields)]
+    path = write_text(tmp_path / "mix.csv", "t,az,theta\n" + "\n".join(lines) + "\n")
+    log = read_log(path)
+    want = np.array([float(f) for f in fields])
+    np.testing.assert_array_equal(log.az, want)
+    np.testing.assert_array_equal(np.signbit(log.az), np.signbit(want))
+
+
+_TOKEN = st.text(alphabet="0123456789.-naN", min_size=1, max_size=18)
+
+
+def _py_float(tok):
+    try:
+        return float(tok)
+    except ValueError:
+        return None
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(_TOKEN, _TOKEN), min_size=1, max_size=30))
+def test_any_token_is_read_as_float_or_reported(tmp_path_factory, rows):
+    """Whatever the text, the reader returns exactly float(text), or names the
+    first line float() cannot read; never a silently wrong number."""
+    path = tmp_path_factory.mktemp("tok") / "tok.csv"
+    lines = [f"{i},{a},{b}" for i, (a, b) in enumerate(rows)]
+    path.write_text("t,az,theta\n" + "\n".join(lines) + "\n")
+    parsed = [(_py_float(a), _py_float(b)) for a, b in rows]
+    bad = [i for i, (a, b) in enumerate(parsed) if a is None or b is None]
+    if bad:
+        with pytest.raises(LogFormatError) as ei:
+            read_log(path)
+        assert ei.value.line == bad[0] + 2
+        log = read_log(path, skip_bad=True)
+        assert log.n_skipped == len(bad)
+        assert [b.line for b in log.bad_rows] == [i + 2 for i in bad[:20]]
+    else:
+        log = read_log(path)
+        want = np.array(parsed, dtype=np.float64).reshape(-1, 2)
+        got = np.column_stack([log.az, log.theta])
+        np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(np.signbit(got), np.signbit(want))
+
+
+def test_endless_line_is_an_error_not_a_memory_hog(tmp_path):
+    path = tmp_path / "garbage.csv"
+    path.write_bytes(b"t,az,theta\n0,9.81,0\n" + b"7" * (3 << 20))
+    with pytest.raises(LogFormatError) as ei:
+        LogReader(path, block_bytes=1 << 16).read_all()
+    assert ei.value.line == 3 and "longer than" in ei.value.reason
+
+
+def test_utf8_bom_is_ignored(tmp_path):
+    path = tmp_path / "bom.csv"
+    path.write_bytes(b"\xef\xbb\xbf# nL=4\nt,az,theta\n0,9.81,0\n")
+    log = read_log(path)
+    assert log.metadata.n_legs == 4 and len(log) == 1
+
+
+# ---------------------------------------------------------------------------
+# header, columns, comments
+# ---------------------------------------------------------------------------
+
+
+def test_column_order_and_extra_columns(tmp_path):
+    text = (
+        "# nL=6\n"
+        "theta,label,t,slip,current,az\n"
+        "0.1,start,0.0,0.2,1.5,9.8\n"
+        "0.2,cruise,0.01,0.21,1.25,9.9\n"
+    )
+    path = write_text(tmp_path / "order.csv", text)
+    log = read_log(path)
+    np.testing.assert_array_equal(log.t, [0.0, 0.01])
+    np.testing.assert_array_equal(log.az, [9.8, 9.9])
+    np.testing.assert_array_equal(log.theta, [0.1, 0.2])
+    np.testing.assert_array_equal(log.slip, [0.2, 0.21])
+    assert log.columns == ("theta", "label", "t", "slip", "current", "az")
+    assert log.extras == {}
+    assert log.metadata.n_legs == 6
+    with LogReader(path, extra_columns=["current"]) as r:
+        assert r.extra_names == ("label", "current")
+        log2 = r.read_all()
+    np.testing.assert_array_equal(log2.extras["current"], [1.5, 1.25])
+    # a non-numeric extra column cannot be parsed as numbers
+    with pytest.raises(LogFormatError, match="line 3.*'label'"):
+        read_log(path, extra_columns=True)
+    with pytest.raises(LogFormatError, match="not in the header"):
+        LogReader(path, extra_columns=["voltage"])
+
+
+def test_extra_columns_written_and_read(tmp_path):
+    t, az, theta, slip = sample_arrays(500)
+    current = np.linspace(0, 3, 500)
+    path = tmp_path / "x.csv"
+    with LogWriter(path, ("t", "az", "theta", "slip", "current"), decimals={"current": 3}) as w:
+        w.write(t, az, theta, slip=slip, current=current)
+    log = read_log(path, extra_columns=True)
+    np.testing.assert_allclose(log.extras["current"], current, atol=5e-4)
+    assert log.slip is not None and read_log(path).extras == {}
+
+
+def test_no_slip_column_gives_none(tmp_path):
+    path = tmp_path / "noslip.csv"
+    with LogWriter(path) as w:
+        w.write([0.0], [9.81], [0.0])
+    log = read_log(path)
+    assert log.slip is None and len(log) == 1
+
+
+def test_comments_and_blank_lines_anywhere(tmp_path):
+    text = (
+        "# nL=4\n"
+        "\n"
+        "# operator: Ada\n"
+        "# slip = 0.3\n"
+        "t,az,theta\n"
+        "0.0,9.81,0.0\n"
+        "\n"
+        "# bump hit here\n"
+        "0.001,9.9,0.001\n"
+        "0.002,9.7,0.002\n"
+    )
+    path = write_text(tmp_path / "c.csv", text)
+    log = read_log(path)
+    np.testing.assert_array_equal(log.t, [0.0, 0.001, 0.002])
+    assert log.metadata == {"nL": "4", "slip": "0.3"}
+    assert log.metadata.lines == {"nL": 1, "slip": 4}
+    assert log.comments == [(1, "nL=4"), (3, "operator: Ada"), (4, "slip = 0.3"), (8, "bump hit here")]
+
+
+def test_writer_comment_between_rows(tmp_path):
+    path = tmp_path / "wc.csv"
+    with LogWriter(path) as w:
+        w.write([0.0], [9.81], [0.0])
+        w.comment("paused by operator")
+        w.write([1.0], [9.81], [0.5])
+    log = read_log(path)
+    assert len(log) == 2 and log.comments == [(3, "paused by operator")]
+
+
+def test_crlf_line_endings(tmp_path):
+    path = write_text(tmp_path / "w.csv", "# nL=4\r\nt,az,theta\r\n0.0,9.81,0.0\r\n0.001,9.82,0.001\r\n")
+    log = read_log(path)
+    np.testing.assert_array_equal(log.az, [9.81, 9.82])
+    assert log.metadata.n_legs == 4
+
+
+def test_last_line_without_newline(tmp_path):
+    path = write_text(tmp_path / "nonl.csv", "t,az,theta\n0.0,9.81,0.0\n0.001,9.82,0.001")
+    np.testing.assert_array_equal(read_log(path).theta, [0.0, 0.001])
+
+
+def test_nan_values_pass_through(tmp_path):
+    path = write_text(tmp_path / "n.csv", "t,az,theta,slip\n0.0,nan,0.0,0.1\n0.001,NaN,0.001,\n0.002,9.8,nan,nan\n")
+    log = read_log(path)
+    assert np.isnan(log.az[:2]).all() and log.az[2] == 9.8
+    assert np.isnan(log.theta[2])
+    assert log.slip[0] == 0.1 and np.isnan(log.slip[1:]).all()  # empty optional field: NaN
+    assert log.n_skipped == 0
+
+
+# ---------------------------------------------------------------------------
+# errors
+# ---------------------------------------------------------------------------
+
+
+GOOD = "0.0,9.81,0.0\n"
+
+
+@pytest.mark.parametrize(
+    "bad, reason",
+    [
+        ("0.001,9.81\n", "expected 3 fields"),
+        ("0.001,9.81,0.1,7\n", "expected 3 fields"),
+        ("0.001,abc,0.1\n", "column 'az': 'abc' is not a number"),
+        ("0.001,9.8.1,0.1\n", "column 'az'"),
+        ("0.001,,0.1\n", "empty field in required column 'az'"),
+        (",9.81,0.1\n", "empty field in required column 't'"),
+        ("0.001,9.81,0x1f\n", "column 'theta'"),
+    ],
+)
+def test_malformed_row_error_names_file_line_reason(tmp_path, bad, reason):
+    text = "# nL=4\n# note\nt,az,theta\n" + GOOD * 4 + "\n" + bad + GOOD * 3
+    path = write_text(tmp_path / "bad.csv", text)
+    with pytest.raises(LogFormatError) as ei:
+        read_log(path)
+    err = ei.value
+    assert isinstance(err, ValueError)
+    assert err.line == 9  # 2 comments + header + 4 rows + 1 blank line, then the bad one
+    assert reason in err.reason
+    assert str(err).startswith(f"{path}, line 9: ")
+
+
+def test_skip_bad_counts_and_reports(tmp_path):
+    rows = [GOOD] * 10
+    rows[2] = "0.1,x,0.1\n"
+    rows[5] = "0.1,9.8\n"
+    rows[7] = "0.1,,0.1\n"
+    path = write_text(tmp_path / "skip.csv", "t,az,theta\n" + "".join(rows))
+    log = read_log(path, skip_bad=True)
+    assert len(log) == 7
+    assert log.n_skipped == 3
+    assert [b.line for b in log.bad_rows] == [4, 7, 9]
+    assert "not a number" in log.bad_rows[0].reason
+    assert "expected 3 fields" in log.bad_rows[1].reason
+    assert "empty field" in log.bad_rows[2].reason
+    r = LogReader(path, skip_bad=True, max_bad_reported=1)
+    assert len(r.read_all()) == 7 and r.n_skipped == 3 and len(r.bad_rows) == 1
+
+
+def test_bad_row_far_into_a_big_file_has_right_line_number(tmp_path):
+    """Several read blocks: the fast path falls back and finds the line."""
+    t, az, theta, _ = sample_arrays(60000)
+    path = tmp_path / "big.csv"
+    with LogWriter(path, metadata={"nL": 4}) as w:
+        w.write(t, az, theta)
+    lines = path.read_text().splitlines(keepends=True)
+    bad_line = 2 + 45678  # 1 comment + header, then row 45678 (1-based)
+    lines[bad_line - 1] = "12.5,9.81,oops\n"
+    path.write_text("".join(lines))
+    for block in (1 << 20, 10000):
+        with pytest.raises(LogFormatError) as ei:
+            LogReader(path, block_bytes=block).read_all()
+        assert ei.value.line == bad_line and "'theta'" in ei.value.reason
+        r = LogReader(path, skip_bad=True, block_bytes=block)
+        log = r.read_all()
+        assert len(log) == 59999 and r.bad_rows[0].line == bad_line
+        np.testing.assert_allclose(log.t[45676:45680], np.delete(t, 45677)[45676:45680], atol=1e-6)
+
+
+def test_missing_required_column(tmp_path):
+    path = write_text(tmp_path / "m.csv", "# nL=4\nt,theta,slip\n0,0,0\n")
+    with pytest.raises(LogFormatError) as ei:
+        read_log(path)
+    assert ei.value.line == 2 and "missing required column(s) az" in str(ei.value)
+    assert str(path) in str(ei.value)
+
+
+def test_header_problems(tmp_path):
+    with pytest.raises(LogFormatError, match="no header"):
+        read_log(write_text(tmp_path / "empty.csv", ""))
+    with pytest.raises(LogFormatError, match="no header"):
+        read_log(write_text(tmp_path / "comments.csv", "# nL=4\n\n"))
+    with pytest.raises(LogFormatError, match="duplicate column"):
+        read_log(write_text(tmp_path / "dup.csv", "t,az,theta,az\n"))
+
+
+def test_bad_metadata_value_names_line(tmp_path):
+    path = write_text(tmp_path / "meta.csv", "# slip=0.1\n# nL=four\nt,az,theta\n")
+    log = read_log(path)
+    with pytest.raises(LogFormatError) as ei:
+        log.metadata.n_legs
+    assert ei.value.line == 2 and "nL='four'" in str(ei.value)
+    assert LogMetadata({"nL": "3"}).n_legs == 3
+    assert LogMetadata({}).n_legs is None
+
+
+def test_not_utf8_is_an_error_with_line(tmp_path):
+    path = tmp_path / "bin.csv"
+    path.write_bytes(b"t,az,theta\n0.0,9.81,0.0\n0.1,\xff\xfe,0.1\n")
+    with pytest.raises(LogFormatError) as ei:
+        read_log(path)
+    assert ei.value.line == 3
+
+
+# ---------------------------------------------------------------------------
+# chunks, streams, empty logs
+# ---------------------------------------------------------------------------
+
+
+def test_chunked_iteration_equals_whole_read(tmp_path):
+    t, az, theta, slip = sample_arrays(50000, seed=2)
+    path = tmp_path / "ch.csv"
+    with LogWriter(path, ("t", "az", "theta", "slip")) as w:
+        w.write(t, az, theta, slip=slip)
+    whole = read_log(path)
+    for chunk_rows, block in ((65536, 1 << 20), (4096, 4 << 20), (1000, 7777), (1, 100000)):
+        r = LogReader(path, block_bytes=block)
+        chunks = list(r.iter_chunks(chunk_rows))
+        sizes = [len(c) for c in chunks]
+        assert all(s == chunk_rows for s in sizes[:-1]) and 0 < sizes[-1] <= chunk_rows
+        assert sum(sizes) == len(whole) == r.n_rows
+        for col in ("t", "az", "theta", "slip"):
+            np.testing.assert_array_equal(np.concatenate([getattr(c, col) for c in chunks]), getattr(whole, col))
+        r.close()
+
+
+def test_reader_can_iterate_only_once(tmp_path):
+    path = tmp_path / "once.csv"
+    with LogWriter(path) as w:
+        w.write([0.0], [9.81], [0.0])
+    r = LogReader(path)
+    assert len(list(r.iter_chunks())) == 1
+    with pytest.raises(RuntimeError, match="only once"):
+        r.read_all()
+    r.close()
+
+
+def test_write_to_stdout(capsys):
+    w = LogWriter(__import__("sys").stdout, metadata={"nL": 4})
+    w.write([0.0, 0.001], [9.81, 9.8], [0.0, 0.00063])
+    w.flush()
+    w.close()  # does not close stdout
+    out = capsys.readouterr().out
+    assert out == "# nL=4\nt,az,theta\n0.000000,9.810000,0.0000000\n0.001000,9.800000,0.0006300\n"
+    log = read_log(io.StringIO(out))
+    np.testing.assert_array_equal(log.az, [9.81, 9.8])
+
+
+def test_binary_streams(tmp_path):
+    buf = io.BytesIO()
+    with LogWriter(buf) as w:
+        w.write([1.0], [2.0], [3.0])
+    assert not buf.closed
+    log = read_log(io.BytesIO(buf.getvalue()))
+    assert (log.t[0], log.az[0], log.theta[0]) == (1.0, 2.0, 3.0)
+    with open(tmp_path / "b.csv", "wb") as f:
+        f.write(buf.getvalue())
+    with open(tmp_path / "b.csv", "rb") as f:
+        assert len(read_log(f)) == 1
+
+
+def test_empty_log_header_only(tmp_path):
+    path = tmp_path / "empty.csv"
+    LogWriter(path, ("t", "az", "theta", "slip"), metadata={"nL": 4}).close()
+    assert path.read_text() == "# nL=4\nt,az,theta,slip\n"
+    log = read_log(path)
+    assert len(log) == 0 and log.t.shape == (0,) and log.slip.shape == (0,)
+    assert log.metadata.n_legs == 4
+    assert list(LogReader(path).iter_chunks()) == []
+
+
+# ---------------------------------------------------------------------------
+# writer behaviour
+# ---------------------------------------------------------------------------
+
+
+def test_writer_never_overwrites_by_accident(tmp_path):
+    path = tmp_path / "keep.csv"
+    with LogWriter(path) as w:
+        w.write([0.0], [9.81], [0.0])
+    before = path.read_text()
+    with pytest.raises(FileExistsError):
+        LogWriter(path)
+    assert path.read_text() == before
+    with LogWriter(path, overwrite=True) as w:
+        w.write([5.0], [9.81], [0.0])
+    assert read_log(path).t[0] == 5.0
+
+
+def test_flush_makes_rows_readable_before_close(tmp_path):
+    """What a live recorder relies on: flushed rows are on disk even if the
+    process dies before close()."""
+    path = tmp_path / "live.csv"
+    w = LogWriter(path, metadata={"nL": 4})
+    t, az, theta, _ = sample_arrays(1000)
+    w.write(t[:600], az[:600], theta[:600])
+    w.flush(fsync=True)
+    log = read_log(path)  # another reader, while the writer is still open
+    assert len(log) == 600
+    w2 = LogWriter(tmp_path / "auto.csv", flush_each_write=True)
+    w2.write(t[:10], az[:10], theta[:10])
+    assert len(read_log(tmp_path / "auto.csv")) == 10
+    w.close()
+    w2.close()
+
+
+def test_writer_rejects_bad_input(tmp_path):
+    with pytest.raises(ValueError, match="must include"):
+        LogWriter(tmp_path / "a.csv", ("t", "az"))
+    assert not os.path.exists(tmp_path / "a.csv")
+    with pytest.raises(ValueError, match="duplicate"):
+        LogWriter(io.StringIO(), ("t", "az", "theta", "t"))
+    with pytest.raises(ValueError, match="invalid column name"):
+        LogWriter(io.StringIO(), ("t", "az", "theta", "a,b"))
+    with pytest.raises(ValueError, match="invalid metadata key"):
+        LogWriter(tmp_path / "b.csv", metadata={"n L": 4})
+    assert not os.path.exists(tmp_path / "b.csv")  # nothing created on a bad call
+    with pytest.raises(ValueError, match="one line"):
+        LogWriter(io.StringIO(), metadata={"note": "a\nb"})
+    w = LogWriter(io.StringIO(), ("t", "az", "theta", "slip"))
+    with pytest.raises(ValueError, match="missing column"):
+        w.write([0.0], [1.0], [2.0])
+    with pytest.raises(ValueError, match="not in the header"):
+        w.write([0.0], [1.0], [2.0], slip=[0.1], speed=[1.0])
+    with pytest.raises(ValueError, match="shape"):
+        w.write([0.0, 1.0], [1.0], [2.0], slip=[0.1])
+    with pytest.raises(ValueError, match="shape"):
+        w.write_array(np.zeros((3, 3)))
+    w.close()
+    with pytest.raises(ValueError, match="closed"):
+        w.write([0.0], [1.0], [2.0], slip=[0.1])
+
+
+def test_writer_formats_special_values(tmp_path):
+    buf = io.StringIO()
+    with LogWriter(buf) as w:
+        w.write([0.0, 1.0, 2.0], [np.inf, -np.inf, -0.0], [-1.5, 1e-12, -1e-12])
+    rows = buf.getvalue().splitlines()[1:]
+    assert rows == ["0.000000,inf,-1.5000000", "1.000000,-inf,0.0000000", "2.000000,0.000000,0.0000000"]
+    assert not any(math.isnan(x) for x in read_log(io.StringIO(buf.getvalue())).az)

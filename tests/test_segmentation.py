@@ -1,0 +1,702 @@
+"""Tests of slipest.segmentation: streaming leg-cycle segmentation.
+
+Streams are synthetic: theta = theta0 + omega * t (omega = 0.63 rad/s) sampled
+at 1 kHz, az = 9.81 m/s^2 plus a decaying sine per cycle. Each stream fault
+gets its own test that checks the flag it must raise and that the ok cycles
+around it are still right.
+"""
+
+import math
+import time
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from slipest.segmentation import QUALITIES, QUALITY_PRIORITY, CycleSegmenter, LegCycle
+from slipest.units import G
+
+OMEGA = 0.63  # rad/s
+FS = 1000.0  # Hz
+NL = 4
+H = math.pi / NL  # half a leg period [rad]
+P = 2 * H  # leg period [rad]
+
+
+def make_stream(T=20.0, fs=FS, omega=OMEGA, th0=-0.3, n_legs=NL, t0=0.0):
+    """t [s], az [m/s^2], theta [rad] (unwrapped) of a rover driving forward."""
+    t = t0 + np.arange(int(round(T * fs))) / fs
+    th = th0 + omega * (t - t0)
+    p = 2 * math.pi / n_legs
+    ph = (th + p / 2) % p - p / 2
+    az = 9.81 + 2.0 * np.exp(-8.0 * np.maximum(ph, 0.0)) * np.sin(40.0 * ph)
+    return t, az, th
+
+
+def run_push(seg, t, az, th):
+    out = []
+    for a, b, c in zip(np.asarray(t).tolist(), np.asarray(az).tolist(), np.asarray(th).tolist()):
+        out += seg.push(a, b, c)
+    return out
+
+
+def run_many(seg, t, az, th, chunk=65536):
+    out = []
+    for i in range(0, len(t), chunk):
+        out += seg.push_many(t[i : i + chunk], az[i : i + chunk], th[i : i + chunk])
+    return out
+
+
+def expected_window(t, az, th, k, window=(0.0, H)):
+    """Samples of cycle k's window for a monotone (forward, clean) stream."""
+    mk = k * P
+    ph = th - mk
+    m = (ph >= window[0]) & (ph < window[1])
+    return t[m], az[m], ph[m]
+
+
+def assert_cycle_matches_stream(c, t, az, th, window=(0.0, H)):
+    et, eaz, eph = expected_window(t, az, th, c.k, window)
+    np.testing.assert_array_equal(c.t, et)
+    np.testing.assert_array_equal(c.az, eaz)
+    np.testing.assert_allclose(c.theta_phase, eph, atol=1e-9)
+    assert c.n_samples == len(et)
+
+
+def by_k(cycles):
+    return {c.k: c for c in cycles}
+
+
+# ---------------------------------------------------------------------------
+# clean stream, closing, window
+# ---------------------------------------------------------------------------
+
+
+def test_clean_stream_all_ok_and_windows_right():
+    t, az, th = make_stream(T=30.0)
+    seg = CycleSegmenter(n_legs=NL)
+    cycles = run_push(seg, t, az, th)
+    # theta goes from -0.3 to 18.6 rad: cycles k = 0 .. (last closed)
+    last_closed = math.floor((th[-1] - H) / P)
+    assert [c.k for c in cycles] == list(range(0, last_closed + 1))
+    assert all(c.quality == "ok" and c.ok and c.flags == () for c in cycles)
+    for c in cycles:
+        assert_cycle_matches_stream(c, t, az, th)
+        assert np.all(c.theta_phase >= 0.0) and np.all(c.theta_phase < H)
+        # (pi/4) / (0.63 rad/s) * 1 kHz samples, give or take one
+        assert abs(c.n_samples - H / OMEGA * FS) <= 1.5
+    # consecutive cycles share their boundary sample
+    for a, b in zip(cycles, cycles[1:]):
+        assert b.t_start == a.t_end
+    c = seg.counters
+    assert c["samples_seen"] == len(t)
+    assert c["samples_dropped"] == 0
+    assert c["cycles_ok"] == len(cycles) == c["cycles_emitted"]
+
+
+def test_cycle_closes_exactly_on_closing_sample():
+    t, az, th = make_stream(T=12.0)
+    seg = CycleSegmenter(n_legs=NL)
+    emitted_at = {}
+    for i in range(len(t)):
+        for c in seg.push(t[i], az[i], th[i]):
+            emitted_at[c.k] = i
+    assert len(emitted_at) >= 3
+    for k, i in emitted_at.items():
+        first_after = int(np.flatnonzero(th >= k * P + H)[0])
+        assert i == first_after, (k, i, first_after)
+        c_end = t[first_after]
+        assert th[i - 1] < k * P + H <= th[i]
+        assert c_end == t[i]
+
+
+def test_t_start_t_end_are_boundary_samples():
+    t, az, th = make_stream(T=12.0)
+    cycles = run_many(CycleSegmenter(), t, az, th)
+    for c in cycles[1:]:
+        i_start = int(np.flatnonzero(th >= c.k * P - H)[0])
+        i_end = int(np.flatnonzero(th >= c.k * P + H)[0])
+        assert c.t_start == t[i_start]
+        assert c.t_end == t[i_end]
+
+
+def test_custom_window_full_stance_and_narrow():
+    t, az, th = make_stream(T=15.0)
+    for window in [(-H, H), (-H / 2, H / 2), (0.1, 0.3)]:
+        cycles = run_many(CycleSegmenter(n_legs=NL, window=window), t, az, th)
+        assert len(cycles) >= 4
+        # the first cycle's window starts before the stream: partial for the full stance
+        for c in cycles[1:]:
+            assert c.quality == "ok", (window, c)
+            assert_cycle_matches_stream(c, t, az, th, window)
+            assert c.theta_phase.min() >= window[0] and c.theta_phase.max() < window[1]
+
+
+def test_other_leg_count():
+    t, az, th = make_stream(T=15.0, n_legs=5)
+    cycles = run_many(CycleSegmenter(n_legs=5), t, az, th)
+    h5 = math.pi / 5
+    assert len(cycles) == math.floor((th[-1] - h5) / (2 * h5)) + 1
+    for c in cycles:
+        assert c.ok
+        assert c.theta_phase.max() < h5
+
+
+def test_legcycle_is_frozen_and_arrays_read_only():
+    t, az, th = make_stream(T=6.0)
+    c = run_many(CycleSegmenter(), t, az, th)[0]
+    assert isinstance(c, LegCycle)
+    with pytest.raises(AttributeError):
+        c.quality = "ok"
+    with pytest.raises(ValueError):
+        c.az[0] = 0.0
+
+
+# ---------------------------------------------------------------------------
+# wrapping
+# ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("wrap", ["pm_pi", "zero_2pi"])
+def test_wrapped_and_unwrapped_give_same_cycles(wrap):
+    t, az, th = make_stream(T=40.0)  # 25 rad: about 4 revolutions
+    if wrap == "pm_pi":
+        thw = (th + math.pi) % (2 * math.pi) - math.pi
+    else:
+        thw = th % (2 * math.pi)
+    ref_seg = CycleSegmenter(theta_wrap="none")
+    ref = run_many(ref_seg, t, az, th)
+    seg = CycleSegmenter(theta_wrap="auto")
+    got = run_many(seg, t, az, thw)
+    assert seg.counters["wraps"] == np.count_nonzero(np.abs(np.diff(thw)) > math.pi) > 0
+    assert len(got) == len(ref)
+    dk = got[0].k - ref[0].k
+    assert dk % NL == 0  # the angle offset is a whole number of revolutions
+    for a, b in zip(got, ref):
+        assert a.k - b.k == dk
+        assert a.quality == b.quality == "ok"
+        np.testing.assert_array_equal(a.t, b.t)
+        np.testing.assert_array_equal(a.az, b.az)
+        np.testing.assert_allclose(a.theta_phase, b.theta_phase, atol=1e-9)
+    # push gives the same as push_many on the wrapped stream
+    assert run_push(CycleSegmenter(), t, az, thw) == got
+
+
+def test_wrapped_stream_without_unwrapping_is_not_ok():
+    """theta_wrap='none' on a wrapped stream: the wrap is a backward jump."""
+    t, az, th = make_stream(T=20.0)
+    thw = (th + math.pi) % (2 * math.pi) - math.pi
+    cycles = run_many(CycleSegmenter(theta_wrap="none"), t, az, thw)
+    assert any(c.quality == "reverse" for c in cycles)
+
+
+# ---------------------------------------------------------------------------
+# stream faults
+# ---------------------------------------------------------------------------
+
+
+def test_jitter_and_uneven_sampling_is_fine():
+    rng = np.random.default_rng(1)
+    dt = (1.0 + rng.uniform(-0.4, 0.4, 30000)) / FS
+    t = np.cumsum(dt)
+    th = -0.3 + OMEGA * t
+    az = 9.81 + rng.normal(0, 0.5, t.size)
+    cycles = run_many(CycleSegmenter(), t, az, th)
+    assert len(cycles) >= 6
+    assert all(c.ok for c in cycles)
+    for c in cycles:
+        assert_cycle_matches_stream(c, t, az, th)
+
+
+def test_first_partial_cycle():
+    t, az, th = make_stream(T=10.0, th0=0.2)  # starts inside cycle 0's window
+    cycles = run_many(CycleSegmenter(), t, az, th)
+    assert cycles[0].k == 0 and cycles[0].quality == "partial"
+    assert cycles[0].theta_phase[0] == pytest.approx(0.2)
+    assert all(c.ok for c in cycles[1:]) and len(cycles) >= 3
+    for c in cycles[1:]:
+        assert_cycle_matches_stream(c, t, az, th)
+    # started before the window: the first cycle is complete and ok
+    t, az, th = make_stream(T=10.0, th0=-0.1)
+    cycles = run_many(CycleSegmenter(), t, az, th)
+    assert cycles[0].k == 0 and cycles[0].ok
+
+
+def test_time_gap_in_window_flags_gap():
+    t, az, th = make_stream(T=20.0)
+    # drop 50 ms of samples in the middle of cycle 3's window
+    i = int(np.flatnonzero(th >= 3 * P + 0.4)[0])
+    keep = np.ones(t.size, bool)
+    keep[i : i + 50] = False
+    t2, az2, th2 = t[keep], az[keep], th[keep]
+    cycles = by_k(run_many(CycleSegmenter(), t2, az2, th2))
+    assert cycles[3].quality == "gap"
+    for k in (1, 2, 4, 5):
+        assert cycles[k].ok
+        assert_cycle_matches_stream(cycles[k], t2, az2, th2)
+
+
+def test_gap_across_window_start_flags_gap():
+    t, az, th = make_stream(T=20.0)
+    i = int(np.flatnonzero(th >= 2 * P)[0])
+    keep = np.ones(t.size, bool)
+    keep[i - 20 : i + 20] = False  # the window's first samples and the ones before it
+    cycles = by_k(run_many(CycleSegmenter(), t[keep], az[keep], th[keep]))
+    assert cycles[2].quality == "gap"
+    assert cycles[1].ok and cycles[3].ok
+
+
+def test_explicit_max_gap():
+    t, az, th = make_stream(T=10.0)
+    i = int(np.flatnonzero(th >= 1 * P + 0.3)[0])
+    keep = np.ones(t.size, bool)
+    keep[i : i + 3] = False  # a 4 ms step
+    cycles = by_k(run_many(CycleSegmenter(max_gap=0.0035), t[keep], az[keep], th[keep]))
+    assert cycles[1].quality == "gap"
+    cycles = by_k(run_many(CycleSegmenter(max_gap=0.0045), t[keep], az[keep], th[keep]))
+    assert cycles[1].ok
+
+
+def test_theta_jump_in_window_flags_gap():
+    t, az, th = make_stream(T=20.0)
+    th2 = th.copy()
+    i = int(np.flatnonzero(th >= 2 * P + 0.3)[0])
+    th2[i:] += 0.2  # encoder skipped 0.2 rad while time went on
+    cycles = by_k(run_many(CycleSegmenter(), t, az, th2))
+    assert cycles[2].quality == "gap"
+    assert cycles[1].ok and cycles[3].ok
+    assert_cycle_matches_stream(cycles[3], t, az, th2)
+
+
+def test_jump_over_whole_cycles_counts_skipped():
+    t, az, th = make_stream(T=20.0)
+    th2 = th.copy()
+    i = int(np.flatnonzero(th >= 1 * P + 0.3)[0])
+    th2[i:] += 2 * P + 0.05  # from cycle 1's window into cycle 3's: cycle 2 never seen
+    seg = CycleSegmenter()
+    cycles = run_many(seg, t, az, th2)
+    ks = [c.k for c in cycles]
+    assert ks[:3] == [0, 1, 3]
+    assert by_k(cycles)[1].quality == "gap"
+    assert by_k(cycles)[3].quality == "gap"  # its window was entered by the jump
+    assert seg.counters["cycles_skipped"] == 1
+    assert by_k(cycles)[4].ok
+    assert_cycle_matches_stream(by_k(cycles)[4], t, az, th2)
+
+
+def test_stop_inside_window_flags_stopped_and_emits_nothing_meanwhile():
+    t, az, th = make_stream(T=20.0)
+    th2 = th.copy()
+    i0 = int(np.flatnonzero(th >= 2 * P + 0.3)[0])
+    n_stop = 3000  # 3 s standing still, IMU still sampling
+    th2[i0 : i0 + n_stop] = th[i0]
+    th2[i0 + n_stop :] = th[i0 + n_stop :] - (th[i0 + n_stop] - th[i0])
+    seg = CycleSegmenter()
+    emitted = []
+    for i in range(t.size):
+        for c in seg.push(t[i], az[i], th2[i]):
+            emitted.append((i, c))
+    during = [c for i, c in emitted if i0 <= i < i0 + n_stop]
+    assert during == []
+    cycles = by_k([c for _, c in emitted])
+    assert cycles[2].quality == "stopped"
+    assert cycles[1].ok and cycles[3].ok
+    assert_cycle_matches_stream(cycles[3], t, az, th2)
+
+
+def test_short_pause_is_not_a_stop():
+    t, az, th = make_stream(T=12.0)
+    th2 = th.copy()
+    i0 = int(np.flatnonzero(th >= 1 * P + 0.3)[0])
+    th2[i0 : i0 + 200] = th[i0]  # 0.2 s < stop_time
+    th2[i0 + 200 :] -= th[i0 + 200] - th[i0]
+    cycles = by_k(run_many(CycleSegmenter(stop_time=0.5), t, az, th2))
+    assert cycles[1].ok
+
+
+def test_stop_before_window_does_not_flag():
+    t, az, th = make_stream(T=15.0)
+    th2 = th.copy()
+    i0 = int(np.flatnonzero(th >= 2 * P - 0.3)[0])  # in the braking half
+    th2[i0 : i0 + 3000] = th[i0]
+    th2[i0 + 3000 :] -= th[i0 + 3000] - th[i0]
+    cycles = by_k(run_many(CycleSegmenter(), t, az, th2))
+    assert cycles[2].ok
+    assert_cycle_matches_stream(cycles[2], t, az, th2)
+
+
+def test_stopped_forever_mid_stance_memory_bounded():
+    seg = CycleSegmenter(max_samples=2048, initial_capacity=256)
+    t, az, th = make_stream(T=3.0, th0=-0.1)
+    first = run_many(seg, t, az, th)
+    assert [c.k for c in first] == [0] and first[0].ok
+    th_stop = th[-1]
+    n = 0
+    emitted = []
+    # ten minutes of standing still inside cycle 0/1's window, 1 kHz
+    for i in range(60):
+        tt = t[-1] + (n + np.arange(10000) + 1) / FS
+        emitted += seg.push_many(tt, np.full(tt.size, 9.81), np.full(tt.size, th_stop))
+        n += tt.size
+        assert seg.buffer_capacity <= 2048
+    assert emitted == []
+    assert seg.counters["samples_overflow"] > 500000
+    # it drives on: that cycle is too long, then all is well again
+    t2 = t[-1] + (n + np.arange(8000) + 1) / FS
+    th2 = th_stop + OMEGA * (t2 - t2[0] + 1e-3)
+    az2 = 9.81 + np.sin(50 * t2)
+    cycles = seg.push_many(t2, az2, th2)
+    assert cycles[0].quality == "too_long"
+    assert cycles[0].t.size == 0 and cycles[0].n_samples > 600000
+    assert cycles[1].ok
+    assert seg.buffer_capacity <= 2048
+
+
+def test_long_stream_buffers_do_not_grow():
+    seg = CycleSegmenter()
+    cap0 = seg.buffer_capacity
+    t, az, th = make_stream(T=3600.0)  # one hour at 1 kHz
+    n_ok = 0
+    for i in range(0, t.size, 65536):
+        n_ok += sum(c.ok for c in seg.push_many(t[i : i + 65536], az[i : i + 65536], th[i : i + 65536]))
+    assert seg.buffer_capacity == cap0
+    assert n_ok == seg.counters["cycles_emitted"] > 800
+    assert seg.counters["samples_seen"] == t.size
+
+
+def test_too_long_cycle_dropped_with_empty_arrays():
+    t, az, th = make_stream(T=10.0)
+    seg = CycleSegmenter(max_samples=500, initial_capacity=64)
+    cycles = run_many(seg, t, az, th)
+    assert cycles and all(c.quality == "too_long" for c in cycles)
+    assert all(c.t.size == 0 and c.az.size == 0 and c.n_samples > 1200 for c in cycles)
+    assert seg.buffer_capacity == 500
+    assert seg.counters["samples_overflow"] == sum(c.n_samples - 500 for c in cycles)
+    assert run_push(CycleSegmenter(max_samples=500, initial_capacity=64), t, az, th) == cycles
+
+
+def test_reverse_flagged_and_resynchronised():
+    t, az, th = make_stream(T=25.0)
+    th2 = th.copy()
+    t_rev = 6.0
+    m = t >= t_rev
+    tt = t[m] - t_rev
+    # 2 s backwards at the same speed, then forward again
+    th2[m] = th[m][0] - OMEGA * np.minimum(tt, 2.0) + OMEGA * np.maximum(tt - 2.0, 0.0)
+    seg = CycleSegmenter()
+    emitted = []
+    for i in range(t.size):
+        for c in seg.push(t[i], az[i], th2[i]):
+            emitted.append((i, c))
+    cycles = [c for _, c in emitted]
+    rev = [c for c in cycles if c.quality == "reverse"]
+    assert len(rev) == 1 and rev[0].k == 2
+    assert not any(c.ok for c in cycles if c.t_end > t_rev and c.t_start < t_rev + 2.0)
+    # nothing is emitted while driving backwards (after the reversal is seen)
+    i_rev = [i for i, c in emitted if c.quality == "reverse"][0]
+    assert not any(i_rev < i < np.searchsorted(t, t_rev + 2.0) for i, _ in emitted)
+    # after resuming, forward cycles are ok and right
+    after = [c for c in cycles if c.t_start >= t_rev + 2.0]
+    assert after[0].quality == "partial"  # resumed inside cycle 1's window
+    later = after[1:]
+    assert len(later) >= 4 and all(c.ok for c in later)
+    t_after = t >= t_rev + 2.0
+    for c in later:
+        assert_cycle_matches_stream(c, t[t_after], az[t_after], th2[t_after])
+    cnt = seg.counters
+    assert cnt["reversals"] == 1 and cnt["cycles_reverse"] == 1
+    assert cnt["samples_reverse"] > 1900
+    assert run_many(CycleSegmenter(), t, az, th2, chunk=777) == cycles
+
+
+def test_encoder_jitter_below_reverse_tol_is_not_reverse():
+    t, az, th = make_stream(T=15.0)
+    rng = np.random.default_rng(3)
+    thj = th + rng.uniform(-0.003, 0.003, th.size)
+    seg = CycleSegmenter(reverse_tol=0.01)
+    cycles = run_many(seg, t, az, thj)
+    assert seg.counters["reversals"] == 0
+    assert len(cycles) >= 5 and all(c.ok for c in cycles)
+
+
+def test_nan_az_in_window_flags_nan_only_that_cycle():
+    t, az, th = make_stream(T=15.0)
+    az2 = az.copy()
+    i = int(np.flatnonzero(th >= 2 * P + 0.4)[0])
+    az2[i] = np.nan
+    j = int(np.flatnonzero(th >= 3 * P - 0.4)[0])  # braking half: outside the window
+    az2[j] = np.nan
+    cycles = by_k(run_many(CycleSegmenter(), t, az2, th))
+    assert cycles[2].quality == "nan"
+    assert np.isnan(cycles[2].az).sum() == 1
+    assert cycles[1].ok and cycles[3].ok
+
+
+@pytest.mark.parametrize("which", ["theta", "t"])
+def test_nan_theta_or_t_sample_dropped_and_flags_nan(which):
+    t, az, th = make_stream(T=15.0)
+    t2, th2 = t.copy(), th.copy()
+    i = int(np.flatnonzero(th >= 2 * P + 0.4)[0])
+    (th2 if which == "theta" else t2)[i] = np.nan
+    seg = CycleSegmenter()
+    cycles = by_k(run_many(seg, t2, az, th2))
+    assert cycles[2].quality == "nan"
+    assert cycles[2].n_samples == expected_window(t, az, th, 2)[0].size - 1
+    assert seg.counters["samples_invalid"] == 1
+    assert cycles[1].ok and cycles[3].ok
+
+
+def test_saturated_and_clip_values():
+    t, az, th = make_stream(T=15.0)
+    az2 = az.copy()
+    i = int(np.flatnonzero(th >= 1 * P + 0.4)[0])
+    az2[i] = 16 * G  # full scale
+    j = int(np.flatnonzero(th >= 2 * P + 0.4)[0])
+    az2[j] = -np.inf
+    m = int(np.flatnonzero(th >= 3 * P + 0.4)[0])
+    az2[m] = 77.125  # the IMU's clip value
+    cycles = by_k(run_many(CycleSegmenter(clip_values=(77.125, -77.125)), t, az2, th))
+    assert cycles[1].quality == "saturated"
+    assert cycles[2].quality == "saturated"
+    assert cycles[3].quality == "saturated"
+    assert cycles[0].ok and cycles[4].ok
+    # without the clip value, 77.125 m/s^2 (< 16 g) is a legitimate reading
+    assert by_k(run_many(CycleSegmenter(), t, az2, th))[3].ok
+
+
+@pytest.mark.parametrize("kind", ["duplicate", "backwards"])
+def test_time_duplicate_or_backwards_counted_and_flagged(kind):
+    t, az, th = make_stream(T=15.0)
+    t2 = t.copy()
+    i = int(np.flatnonzero(th >= 2 * P + 0.4)[0])
+    t2[i] = t2[i - 1] if kind == "duplicate" else t2[i - 1] - 0.0005
+    seg = CycleSegmenter()
+    cycles = by_k(run_many(seg, t2, az, th))
+    assert cycles[2].quality == "time"
+    key = "time_duplicate" if kind == "duplicate" else "time_backwards"
+    assert seg.counters[key] == 1
+    assert cycles[1].ok and cycles[3].ok
+    assert_cycle_matches_stream(cycles[3], t2, az, th)
+
+
+def test_clock_reset_does_not_stop_the_stream():
+    t, az, th = make_stream(T=20.0)
+    t2 = t.copy()
+    i = int(np.flatnonzero(th >= 2 * P + 0.4)[0])
+    t2[i:] -= 100.0  # clock jumps back by 100 s and goes on
+    seg = CycleSegmenter()
+    cycles = by_k(run_many(seg, t2, az, th))
+    assert cycles[2].quality == "time"
+    assert seg.counters["time_backwards"] == 1
+    assert cycles[3].ok and cycles[4].ok
+
+
+def test_sparse_window():
+    t, az, th = make_stream(T=30.0, fs=20.0)  # 20 Hz: ~25 samples per window
+    cycles = run_many(CycleSegmenter(min_samples=40), t, az, th)
+    assert cycles and all(c.quality == "sparse" for c in cycles)
+    cycles = run_many(CycleSegmenter(min_samples=8), t, az, th)
+    assert all(c.ok for c in cycles)
+
+
+# ---------------------------------------------------------------------------
+# push vs push_many
+# ---------------------------------------------------------------------------
+
+
+def faulty_stream():
+    """Every fault at once: wraps, jitter, gaps, stop, reverse, NaNs,
+    saturation, duplicate and backward timestamps."""
+    rng = np.random.default_rng(7)
+    t, az, th = make_stream(T=60.0)
+    t = t + rng.uniform(-2e-4, 2e-4, t.size)
+    th = th + rng.uniform(-0.002, 0.002, th.size)
+    # stop 2 s inside a window
+    i0 = int(np.flatnonzero(th >= 3 * P + 0.3)[0])
+    th[i0 : i0 + 2000] = th[i0]
+    th[i0 + 2000 :] -= th[i0 + 2000] - th[i0]
+    # reverse 1.5 s
+    i1 = int(np.flatnonzero(th >= 6 * P + 0.2)[0])
+    d = np.arange(th.size - i1) / FS
+    th[i1:] = th[i1] - OMEGA * np.minimum(d, 1.5) + OMEGA * np.maximum(d - 1.5, 0) + (th[i1:] - th[i1] - OMEGA * d)
+    az[rng.integers(0, t.size, 5)] = np.nan
+    th[rng.integers(0, t.size, 3)] = np.nan
+    t[rng.integers(0, t.size, 2)] = np.nan
+    az[rng.integers(0, t.size, 4)] = 200.0
+    dup = rng.integers(1, t.size, 3)
+    t[dup] = t[dup - 1]
+    keep = np.ones(t.size, bool)
+    for g in rng.integers(0, t.size - 100, 6):
+        keep[g : g + rng.integers(5, 80)] = False
+    t, az, th = t[keep], az[keep], th[keep]
+    th = (th + math.pi) % (2 * math.pi) - math.pi  # wrapped, NaNs stay NaN
+    return t, az, th
+
+
+def test_push_and_push_many_identical_on_faulty_stream():
+    t, az, th = faulty_stream()
+    seg1 = CycleSegmenter()
+    ref = run_push(seg1, t, az, th)
+    flags = {f for c in ref for f in c.flags}
+    assert {"stopped", "reverse", "gap", "nan", "saturated", "time"} <= flags
+    assert sum(c.ok for c in ref) >= 5
+    for chunk in (7, 100, 4096, 65536, t.size):
+        seg2 = CycleSegmenter()
+        got = run_many(seg2, t, az, th, chunk=chunk)
+        assert got == ref, chunk
+        assert seg2.counters == seg1.counters, chunk
+    # one or two samples per call (slow): on the first 15 s, which hold the stop
+    m = 15000
+    seg1 = CycleSegmenter()
+    ref = run_push(seg1, t[:m], az[:m], th[:m])
+    assert any(c.quality != "ok" for c in ref)
+    for chunk in (1, 2):
+        seg2 = CycleSegmenter()
+        assert run_many(seg2, t[:m], az[:m], th[:m], chunk=chunk) == ref
+        assert seg2.counters == seg1.counters
+
+
+def test_push_many_random_chunking_and_mixing_with_push():
+    t, az, th = faulty_stream()
+    ref = run_push(CycleSegmenter(), t, az, th)
+    rng = np.random.default_rng(11)
+    seg = CycleSegmenter()
+    out = []
+    i = 0
+    while i < t.size:
+        n = int(rng.integers(0, 3000))
+        if rng.random() < 0.3:
+            for j in range(i, min(i + n, t.size)):
+                out += seg.push(t[j], az[j], th[j])
+        else:
+            out += seg.push_many(t[i : i + n], az[i : i + n], th[i : i + n])
+        i += n
+    assert out == ref
+
+
+@st.composite
+def fault_streams(draw):
+    n = draw(st.integers(min_value=50, max_value=3000))
+    seed = draw(st.integers(min_value=0, max_value=2**31 - 1))
+    rng = np.random.default_rng(seed)
+    fs = draw(st.sampled_from([50.0, 200.0, 1000.0]))
+    omega = draw(st.floats(min_value=0.2, max_value=4.0))
+    dt = (1.0 + rng.uniform(-0.3, 0.3, n)) / fs
+    # some dwell (stops) and reversals through a random speed profile
+    speed = omega * np.repeat(rng.choice([1.0, 1.0, 1.0, 0.0, -0.7], size=n // 25 + 1), 25)[:n]
+    t = np.cumsum(dt)
+    th = draw(st.floats(min_value=-7.0, max_value=7.0)) + np.cumsum(speed * dt)
+    th += rng.normal(0, draw(st.sampled_from([0.0, 0.001, 0.02])), n)
+    az = 9.81 + rng.normal(0, 3, n)
+    for arr, val in ((az, np.nan), (th, np.nan), (t, np.nan), (az, 400.0)):
+        k = int(rng.integers(0, 4))
+        arr[rng.integers(0, n, k)] = val
+    if rng.random() < 0.5:
+        d = rng.integers(1, n, 3)
+        t[d] = t[d - 1] - rng.choice([0.0, 0.01])
+    if rng.random() < 0.5:
+        th = (th + math.pi) % (2 * math.pi) - math.pi
+    chunks = draw(st.lists(st.integers(min_value=1, max_value=400), min_size=1, max_size=10))
+    n_legs = draw(st.sampled_from([3, 4, 6]))
+    h = math.pi / n_legs
+    window = draw(st.sampled_from([None, (-h, h), (0.2 * h, 0.8 * h)]))
+    max_samples = draw(st.sampled_from([65536, 40]))
+    return t, az, th, chunks, dict(n_legs=n_legs, window=window, max_samples=max_samples, initial_capacity=16)
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(fault_streams())
+def test_push_equals_push_many_property(data):
+    t, az, th, chunks, kw = data
+    seg1 = CycleSegmenter(**kw)
+    ref = run_push(seg1, t, az, th)
+    seg2 = CycleSegmenter(**kw)
+    got = []
+    i = 0
+    j = 0
+    while i < t.size:
+        n = chunks[j % len(chunks)]
+        got += seg2.push_many(t[i : i + n], az[i : i + n], th[i : i + n])
+        i += n
+        j += 1
+    assert got == ref
+    assert seg1.counters == seg2.counters
+    for c in ref:
+        assert c.quality in QUALITIES
+        assert c.quality == (c.flags[0] if c.flags else "ok")
+        assert c.t.size == c.az.size == c.theta_phase.size
+        if "too_long" in c.flags:
+            assert c.t.size == 0 and c.n_samples > kw["max_samples"]
+        else:
+            assert c.t.size == c.n_samples
+        if c.ok:
+            assert np.all(np.isfinite(c.az)) and np.all(np.diff(c.t) > 0)
+    assert seg1.buffer_capacity <= kw["max_samples"]
+
+
+# ---------------------------------------------------------------------------
+# counters, parameters, speed
+# ---------------------------------------------------------------------------
+
+
+def test_counters_add_up():
+    t, az, th = faulty_stream()
+    seg = CycleSegmenter()
+    cycles = run_many(seg, t, az, th)
+    c = seg.counters
+    assert c["samples_seen"] == t.size
+    assert c["samples_dropped"] == c["samples_invalid"] + c["samples_reverse"] + c["samples_overflow"]
+    assert c["samples_invalid"] == int(np.count_nonzero(~(np.isfinite(t) & np.isfinite(th))))
+    assert c["cycles_emitted"] == len(cycles)
+    for q in QUALITIES:
+        assert c[f"cycles_{q}"] == sum(cy.quality == q for cy in cycles)
+    assert c["time_duplicate"] >= 1 and c["reversals"] == 1
+    assert set(QUALITY_PRIORITY) | {"ok"} == set(QUALITIES)
+
+
+def test_reset_forgets_the_stream():
+    t, az, th = make_stream(T=10.0)
+    seg = CycleSegmenter()
+    a = run_many(seg, t, az, th)
+    seg.reset()
+    assert seg.counters["samples_seen"] == 0
+    assert run_many(seg, t, az, th) == a
+
+
+@pytest.mark.parametrize(
+    "kw",
+    [
+        dict(n_legs=0),
+        dict(window=(0.2, 0.1)),
+        dict(window=(0.0, 1.0)),
+        dict(max_gap=0.0),
+        dict(theta_wrap="sometimes"),
+        dict(reverse_tol=0.0),
+        dict(max_samples=0),
+        dict(full_scale=-1.0),
+    ],
+)
+def test_bad_parameters_raise(kw):
+    with pytest.raises(ValueError):
+        CycleSegmenter(**kw)
+
+
+def test_push_many_rejects_mismatched_arrays():
+    seg = CycleSegmenter()
+    with pytest.raises(ValueError, match="equal-length"):
+        seg.push_many(np.zeros(3), np.zeros(2), np.zeros(3))
+    assert seg.push_many([], [], []) == []
+
+
+def test_push_is_fast_enough():
+    """push() one sample at a time: well under 10 us per sample (CPU time)."""
+    t, az, th = make_stream(T=30.0)
+    tl, al, hl = t.tolist(), az.tolist(), th.tolist()
+    seg = CycleSegmenter()
+    push = seg.push
+    t0 = time.process_time()
+    for a, b, c in zip(tl, al, hl):
+        push(a, b, c)
+    per_sample = (time.process_time() - t0) / len(tl)
+    assert per_sample < 10e-6, per_sample
