@@ -19,27 +19,37 @@ def add_parser(sub) -> None:
         "stream as a log CSV (the format `slipest replay` reads). Either give one slip and soil with the "
         "options, or a TOML scenario with segments of different slip and soil.",
     )
-    p.add_argument("--scenario", metavar="TOML", help="scenario file (segments of slip and soil; see README)")
-    p.add_argument("--slip", type=float, default=0.25, help="slip ratio i, 0..<1 (default 0.25)")
-    p.add_argument("--kS", type=float, default=1000.0, help="soil/leg stiffness [N/m] (default 1000)")
-    p.add_argument("--phiS", type=float, default=0.52, help="static friction angle [rad] (default 0.52)")
-    p.add_argument("--phiD", type=float, default=0.35, help="dynamic friction angle [rad] (default 0.35)")
-    p.add_argument("--kappa", type=float, default=0.3, help="lateral leg stiffness ratio (default 0.3; 0 = literal thesis)")
-    p.add_argument("--legs", type=int, default=4, help="number of legs of the wheel-leg (default 4)")
-    p.add_argument("--cycles", type=int, default=10, help="number of leg cycles (default 10)")
-    p.add_argument("--rate", type=float, default=None, help="IMU sample rate [Hz] (default 1000)")
-    p.add_argument("--noise", type=float, default=None, help="IMU noise standard deviation [g] (default 0)")
-    p.add_argument("--seed", type=int, default=None, help="random seed of the noise")
-    p.add_argument("--dt", type=float, default=None, help="model integration step [s] (default 1e-4)")
-    p.add_argument(
+    add_scenario_arguments(p)
+    p.add_argument("-o", "--output", default="-", help="output CSV file ('-' or omitted: stdout)")
+    p.set_defaults(func=run)
+
+
+def add_scenario_arguments(
+    p: argparse.ArgumentParser,
+    noise_help: str = "IMU noise standard deviation [g] (default 0)",
+    seed_help: str = "random seed of the noise",
+) -> None:
+    """The scenario options, read back by :func:`build_scenario` (shared with the virtual device)."""
+    g = p.add_argument_group("scenario")
+    g.add_argument("--scenario", metavar="TOML", help="scenario file (segments of slip and soil; see README)")
+    g.add_argument("--slip", type=float, default=0.25, help="slip ratio i, 0..<1 (default 0.25)")
+    g.add_argument("--kS", type=float, default=1000.0, help="soil/leg stiffness [N/m] (default 1000)")
+    g.add_argument("--phiS", type=float, default=0.52, help="static friction angle [rad] (default 0.52)")
+    g.add_argument("--phiD", type=float, default=0.35, help="dynamic friction angle [rad] (default 0.35)")
+    g.add_argument("--kappa", type=float, default=0.3, help="lateral leg stiffness ratio (default 0.3; 0 = literal thesis)")
+    g.add_argument("--legs", type=int, default=4, help="number of legs of the wheel-leg (default 4)")
+    g.add_argument("--cycles", type=int, default=10, help="number of leg cycles (default 10)")
+    g.add_argument("--rate", type=float, default=None, help="IMU sample rate [Hz] (default 1000)")
+    g.add_argument("--noise", type=float, default=None, help=noise_help)
+    g.add_argument("--seed", type=int, default=None, help=seed_help)
+    g.add_argument("--dt", type=float, default=None, help="model integration step [s] (default 1e-4)")
+    g.add_argument(
         "--effect",
         action="append",
         default=[],
         metavar="NAME:k=v,...",
         help="switch on a sim-to-real effect (repeatable), e.g. imu_lowpass:cutoff=40",
     )
-    p.add_argument("-o", "--output", default="-", help="output CSV file ('-' or omitted: stdout)")
-    p.set_defaults(func=run)
 
 
 def build_scenario(args: argparse.Namespace) -> Scenario:

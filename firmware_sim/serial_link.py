@@ -1,0 +1,333 @@
+"""Serial links of the virtual device: a pseudo-terminal it creates, or a given port.
+
+:class:`PtyLink` creates a pseudo-terminal pair itself (``os.openpty`` +
+``tty.setraw``), closes its own slave end and announces the slave's path for
+the receiver to open, as ``socat -d -d pty,raw,echo=0 ...`` does.  With
+``link_path`` it also keeps a symbolic link to the current slave (socat's
+``link=``), so a receiver can reopen one stable name across reconnections.
+It knows whether a reader is there: the master polls ``POLLHUP`` while no
+slave is open; frames are sent once a reader has had the port open for
+``settle`` seconds (pyserial empties the input buffer right after opening).
+A disconnection closes the master (``/dev/pts/N`` disappears and the reader
+gets "device reports readiness to read but returned no data"); the
+reconnection creates a new pair and announces it.
+
+:class:`PortLink` writes to an existing port with pyserial (a real UART, or
+one end of a ``socat`` pair); a disconnection closes and reopens it.
+
+Both encode frames with :mod:`slipest.io.serial_frames` (the device's wire
+format), vectorised per chunk.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import os
+import select
+import struct
+import termios
+import time
+import tty
+from typing import Callable
+
+import numpy as np
+
+from firmware_sim.device import KIND_IMU, KIND_REF, FrameTable, LinkDown
+from slipest.io.serial_frames import (
+    encode_frame,
+    encode_imu_sample,
+    encode_imu_samples,
+    encode_slip_reference,
+    encode_slip_references,
+)
+
+#: Type byte of the frames sent as "unknown" traffic (no such frame type exists).
+UNKNOWN_FRAME_TYPE = 0x7F
+_IMU_LEN = 24
+_REF_LEN = 20
+
+
+def encode_rows(table: FrameTable, t_us: np.ndarray, idx: list[int]) -> list[bytes]:
+    """One serial frame (bytes, delimiter included) per row ``idx`` of ``table``
+    (frame by frame for a few rows, vectorised for many)."""
+    if len(idx) < 32:
+        out = []
+        kind, wheel, seq, az, theta, slip = table.kind, table.wheel, table.seq, table.az, table.theta, table.slip
+        for k in idx:
+            if kind[k] == KIND_IMU:
+                out.append(encode_imu_sample(int(wheel[k]), int(seq[k]), int(t_us[k]), float(az[k]), float(theta[k])))
+            else:
+                out.append(encode_slip_reference(int(wheel[k]), int(seq[k]), int(t_us[k]), float(slip[k])))
+        return out
+    rows = np.asarray(idx)
+    out: list = [b""] * rows.size
+    kinds = table.kind[rows]
+    for kind, length in ((KIND_IMU, _IMU_LEN), (KIND_REF, _REF_LEN)):
+        pos = np.flatnonzero(kinds == kind)
+        if not pos.size:
+            continue
+        s = rows[pos]
+        if kind == KIND_IMU:
+            data = encode_imu_samples(table.wheel[s], table.seq[s], t_us[s], table.az[s], table.theta[s])
+        else:
+            data = encode_slip_references(table.wheel[s], table.seq[s], t_us[s], table.slip[s])
+        for k, p in enumerate(pos.tolist()):
+            out[p] = data[k * length : (k + 1) * length]
+    return out
+
+
+def unknown_frames(n: int, rng: np.random.Generator) -> bytes:
+    """``n`` CRC-valid frames of an unknown type, of lengths no known type has."""
+    out = []
+    for _ in range(n):
+        size = int(rng.choice([6, 10, 12, 26, 30]))
+        payload = bytes([UNKNOWN_FRAME_TYPE, 0]) + rng.integers(0, 256, size - 2, dtype=np.uint8).tobytes()
+        out.append(encode_frame(payload))
+    return b"".join(out)
+
+
+class _BaseLink:
+    corrupts = True
+
+    def __init__(self, announce: Callable[[str], None] | None = None):
+        self.announce = announce or (lambda text: None)
+        self._down = False
+
+    def encode(self, table: FrameTable, t_us: np.ndarray, idx: list[int]) -> list:
+        return encode_rows(table, t_us, idx)
+
+    def send_unknown(self, n: int, rng: np.random.Generator) -> int:
+        self.send([unknown_frames(n, rng)])
+        return n
+
+
+class PtyLink(_BaseLink):
+    """A pseudo-terminal pair created by the device; the receiver opens :attr:`path`."""
+
+    def __init__(self, link_path: str | None = None, settle: float = 0.5, stall_timeout: float = 2.0,
+                 announce: Callable[[str], None] | None = None):
+        super().__init__(announce)
+        self.link_path = link_path
+        self.settle = settle
+        self.stall_timeout = stall_timeout
+        self.master: int | None = None
+        self.path: str | None = None
+        self._peer_since: float | None = None
+        self._poll = None
+        #: bytes written but never read, discarded by disconnections (should stay 0)
+        self.bytes_discarded_at_disconnect = 0
+        #: disconnections where the unread bytes could not be probed
+        self.drains_unverified = 0
+
+    @property
+    def name(self) -> str:
+        return self.link_path or self.path or "pty"
+
+    def open(self) -> None:
+        master, slave = os.openpty()
+        tty.setraw(slave)
+        self.path = os.ttyname(slave)
+        os.close(slave)  # the master sees POLLHUP until a reader opens the slave
+        os.set_blocking(master, False)
+        self.master = master
+        self._poll = select.poll()
+        self._poll.register(master, select.POLLOUT | select.POLLHUP)
+        self._peer_since = None
+        self._down = False
+        if self.link_path:
+            tmp = f"{self.link_path}.{os.getpid()}.tmp"
+            try:
+                os.unlink(tmp)
+            except FileNotFoundError:
+                pass
+            os.symlink(self.path, tmp)
+            os.replace(tmp, self.link_path)
+        self.announce(f"serial device {self.path}" + (f" (link {self.link_path})" if self.link_path else ""))
+
+    def ready(self) -> bool:
+        if self.master is None:
+            return False
+        events = self._poll.poll(0)
+        hup = any(ev & select.POLLHUP for _, ev in events)
+        if hup:
+            self._peer_since = None
+            return False
+        now = time.monotonic()
+        if self._peer_since is None:
+            self._peer_since = now
+        return now - self._peer_since >= self.settle
+
+    def send(self, items) -> int:
+        if self.master is None:
+            raise LinkDown("pty closed")
+        data = memoryview(b"".join(items))
+        total = len(data)
+        deadline = None
+        while data:
+            try:
+                k = os.write(self.master, data)
+                data = data[k:]
+                deadline = None
+            except BlockingIOError:
+                now = time.monotonic()
+                if deadline is None:
+                    deadline = now + self.stall_timeout
+                elif now > deadline:
+                    raise LinkDown(f"the reader of {self.path} stopped reading ({len(data)} bytes unsent)") from None
+                select.select([], [self.master], [], 0.05)
+            except OSError as exc:
+                if exc.errno in (errno.EIO, errno.EBADF):
+                    raise LinkDown(f"{self.path}: {exc.strerror}") from None
+                raise
+        return total
+
+    def _close_master(self) -> None:
+        if self.master is not None:
+            try:
+                os.close(self.master)
+            except OSError:
+                pass
+            self.master = None
+            self._peer_since = None
+
+    def _unread_bytes(self) -> int:
+        """Bytes written to the master that the reader has not read yet (FIONREAD on the slave)."""
+        if self.master is None or self.path is None:
+            return 0
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        except OSError:
+            return -1
+        try:
+            return struct.unpack("i", fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"))[0]
+        finally:
+            os.close(fd)
+
+    def _drain_then_close(self, timeout: float = 0.5) -> None:
+        """Let the reader take what was already sent, then close the master.
+
+        A frame the device counted as sent must not vanish with the master: the
+        injected disconnection starts after the last sent byte. Whatever the
+        reader still leaves unread after ``timeout`` s is counted in
+        :attr:`bytes_discarded_at_disconnect` and reported.
+        """
+        deadline = time.monotonic() + timeout
+        unread = self._unread_bytes()
+        while unread and time.monotonic() < deadline:
+            time.sleep(0.002)
+            unread = self._unread_bytes()
+        if unread < 0:
+            self.drains_unverified += 1  # could not look at the reader's queue
+        else:
+            self.bytes_discarded_at_disconnect += unread
+        self._close_master()
+
+    def disconnect(self) -> None:
+        """Close the master: the slave node disappears and the reader gets an error."""
+        self._drain_then_close()
+        self._down = True
+
+    def reconnect(self) -> None:
+        """A new pseudo-terminal pair (announced; the link path follows it)."""
+        self._drain_then_close()
+        self.open()
+
+    def close(self) -> None:
+        self._close_master()
+        if self.link_path:
+            try:
+                if os.path.islink(self.link_path):
+                    os.unlink(self.link_path)
+            except OSError:
+                pass
+
+    def describe(self) -> dict:
+        return {
+            "type": "pty",
+            "path": self.path,
+            "link": self.link_path,
+            "bytes_discarded_at_disconnect": self.bytes_discarded_at_disconnect,
+            "drains_unverified": self.drains_unverified,
+        }
+
+
+class PortLink(_BaseLink):
+    """An existing serial port (pyserial ``serial_for_url``): a UART, a socat pty end..."""
+
+    def __init__(self, port: str, baudrate: int = 921600, write_timeout: float = 2.0,
+                 announce: Callable[[str], None] | None = None):
+        super().__init__(announce)
+        self.port = port
+        self.baudrate = baudrate
+        self.write_timeout = write_timeout
+        self.ser = None
+        self._next_try = 0.0
+
+    @property
+    def name(self) -> str:
+        return self.port
+
+    def _try_open(self) -> bool:
+        import serial
+
+        now = time.monotonic()
+        if now < self._next_try:
+            return False
+        self._next_try = now + 0.25
+        try:
+            self.ser = serial.serial_for_url(self.port, baudrate=self.baudrate, write_timeout=self.write_timeout)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            self.ser = None
+            self._last_error = str(exc)
+            return False
+        self.announce(f"serial port {self.port} open")
+        return True
+
+    def open(self) -> None:
+        self._down = False
+        if not self._try_open():
+            raise OSError(f"cannot open {self.port}: {getattr(self, '_last_error', '?')}")
+
+    def ready(self) -> bool:
+        if self.ser is not None:
+            return True
+        if self._down:
+            return False
+        return self._try_open()
+
+    def recover(self) -> None:
+        self.close()
+
+    def send(self, items) -> int:
+        import serial
+
+        if self.ser is None:
+            raise LinkDown(f"{self.port} closed")
+        data = b"".join(items)
+        try:
+            self.ser.write(data)
+        except (serial.SerialException, OSError) as exc:
+            self.close()
+            raise LinkDown(f"{self.port}: {exc}") from None
+        return len(data)
+
+    def disconnect(self) -> None:
+        self.close()
+        self._down = True
+
+    def reconnect(self) -> None:
+        self._down = False
+        self._next_try = 0.0
+        self._try_open()
+
+    def close(self) -> None:
+        if self.ser is not None:
+            try:
+                self.ser.close()
+            except Exception:
+                pass
+            self.ser = None
+
+    def describe(self) -> dict:
+        return {"type": "port", "port": self.port, "baudrate": self.baudrate}

@@ -1,0 +1,346 @@
+"""``slipest demo``: the whole chain live, with no hardware.
+
+Starts the virtual IMU device (``firmware-sim``) in its own process, driving
+a wheel-leg over four stretches of ground where slip and soil change, and
+estimates slip and soil from its stream as it comes, over a pseudo-terminal
+(default) or over a shared CAN bus (``--bus can``: ``slipest can-server`` in
+a third process; the estimates are published back on the bus).  Each leg
+cycle prints one line with the estimate beside the truth; the end prints a
+summary: slip and dphi RMSE, how often the 95 % intervals cover the truth,
+frames lost, and latencies.
+
+About 100 s at real time (40 leg cycles); ``--speed 10`` runs it ten times
+faster, ``--cycles N`` shortens it.  ``--faults`` makes the device misbehave
+(a dropped frame, corrupted bytes or unknown CAN IDs, a stuck sensor, a
+disconnection) to show that the estimator survives, counts them and never
+estimates from damaged cycles.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import queue
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+
+import numpy as np
+
+#: The demo's drive: four stretches of 10 leg cycles (about 25 s each at real time).
+DEMO_SCENARIO = {
+    "model": {"kappa": 0.3, "nL": 4},
+    "imu": {"rate": 1000.0, "noise": 0.01},
+    "segment": [
+        {"cycles": 10, "slip": 0.25, "kS": 1000.0, "phiS": 0.52, "phiD": 0.35},
+        {"cycles": 10, "slip": [0.25, 0.45], "kS": 1000.0, "phiS": 0.52, "phiD": 0.35},
+        {"cycles": 10, "slip": 0.30, "kS": 1400.0, "phiS": 0.62, "phiD": 0.38},
+        {"cycles": 10, "slip": [0.45, 0.20], "kS": 700.0, "phiS": 0.48, "phiD": 0.36},
+    ],
+}
+_STRETCHES = ("firm soil, steady slip", "same soil, slip rising", "stiffer, grippier soil", "soft soil, slip falling")
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "demo",
+        help="run the virtual device and the live estimator side by side (no hardware needed)",
+        description=__doc__.split("\n\n", 1)[1],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--bus", choices=("serial", "can"), default="serial",
+                   help="link between device and estimator: a pseudo-terminal (default) or the CAN server")
+    p.add_argument("--speed", type=float, default=1.0, help="time factor of the device (default 1: real time)")
+    p.add_argument("--cycles", type=int, default=None, help="leg cycles to drive (default: all 40)")
+    p.add_argument("--seed", type=int, default=7, help="seed of the IMU noise (default 7)")
+    p.add_argument("--faults", action="store_true", help="inject faults (dropped frame, corruption, stuck sensor, "
+                   "disconnection) and show they are counted and never estimated from")
+    p.set_defaults(func=run)
+
+
+def scenario_toml(doc: dict) -> str:
+    """The scenario document as TOML (numbers, strings and [a, b] ramps only)."""
+    def value(v):
+        if isinstance(v, (list, tuple)):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        if isinstance(v, str):
+            return '"' + v + '"'
+        return repr(v)
+
+    lines = []
+    for table in ("model", "imu"):
+        if doc.get(table):
+            lines.append(f"[{table}]")
+            lines += [f"{k} = {value(v)}" for k, v in doc[table].items()]
+    for seg in doc["segment"]:
+        lines.append("[[segment]]")
+        lines += [f"{k} = {value(v)}" for k, v in seg.items()]
+    return "\n".join(lines) + "\n"
+
+
+class _Child:
+    """A child process whose stdout lines are collected in a thread."""
+
+    def __init__(self, args: list[str]):
+        self.p = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1)
+        self.lines: queue.Queue = queue.Queue()
+        self.err: list[str] = []
+        threading.Thread(target=self._pump, args=(self.p.stdout, True), daemon=True).start()
+        threading.Thread(target=self._pump, args=(self.p.stderr, False), daemon=True).start()
+
+    def _pump(self, stream, out):
+        for line in stream:
+            (self.lines.put if out else self.err.append)(line.rstrip("\n"))
+        if out:
+            self.lines.put(None)
+
+    def expect(self, prefix: str, timeout: float) -> str:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            try:
+                line = self.lines.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            if line is None:
+                break
+            if prefix in line:
+                return line
+        raise RuntimeError(f"{prefix!r} not seen from {self.p.args[2]}; its stderr: " + " | ".join(self.err[-5:]))
+
+    def stop(self, timeout: float = 5.0) -> int | None:
+        if self.p.poll() is None:
+            self.p.terminate()  # this child only, by its pid
+            try:
+                self.p.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.p.kill()
+                self.p.wait(timeout)
+        return self.p.returncode
+
+
+class _Display:
+    """One line per leg cycle, the estimate beside the truth; keeps the results."""
+
+    def __init__(self, scenario, out):
+        self.cycles = scenario.cycles
+        self.period = 2 * math.pi / (scenario.n_legs * scenario.omega)
+        self.out = out
+        self.rows: list[tuple] = []  # (cycle, estimate, truth slip, truth dphi)
+        self.flagged: dict[str, int] = {}
+        self._stretch = -1
+
+    def header(self):
+        print(f"{'cycle':>5} {'t [s]':>7}  {'slip: estimate':>15} {'true':>6}   "
+              f"{'dphi [rad]: estimate':>20} {'true':>6}  quality", file=self.out, flush=True)
+
+    def __call__(self, wheel, est, info):
+        k = int(est.cycle)
+        if k < 0:
+            return  # the stream starts at the very end of the cycle before the first: not a cycle driven
+        truth = self.cycles[k] if k < len(self.cycles) else None
+        stretch = k // 10 if truth is not None else -1
+        if stretch != self._stretch and 0 <= stretch < len(_STRETCHES):
+            self._stretch = stretch
+            print(f"      -- stretch {stretch + 1}: {_STRETCHES[stretch]} --", file=self.out, flush=True)
+        t = (k + 1) * self.period  # scenario time at the end of the cycle [s]
+        if est.quality != "ok" or truth is None:
+            self.flagged[est.quality] = self.flagged.get(est.quality, 0) + 1
+            print(f"{k:>5} {t:7.1f}  {'not estimated':>15} {'':>6}   {'':>20} {'':>6}  {est.quality}",
+                  file=self.out, flush=True)
+            return
+        dphi = truth.phiS - truth.phiD
+        self.rows.append((k, est, truth.slip, dphi))
+        print(f"{k:>5} {t:7.1f}  {est.slip:7.3f} ±{est.slip_std:5.3f} {truth.slip:6.3f}   "
+              f"{est.dphi:12.3f} ±{est.dphi_std:5.3f} {dphi:6.3f}  ok", file=self.out, flush=True)
+
+
+def _summary(display: _Display, live, source_counters: dict, device_report: dict | None, out) -> dict:
+    rows = display.rows
+    res = {"estimated": len(rows), "flagged": dict(display.flagged)}
+    print("\nsummary", file=out)
+    n_total = len(rows) + sum(display.flagged.values())
+    flagged = ", ".join(f"{k} {v}" for k, v in sorted(display.flagged.items())) or "none"
+    print(f"  leg cycles: {n_total} closed, {len(rows)} estimated, not estimated: {flagged}", file=out)
+    if rows:
+        e = np.array([(r[1].slip, r[1].slip_std, r[2], r[1].dphi, r[1].dphi_std, r[3]) for r in rows])
+        slip_rmse = float(np.sqrt(np.mean((e[:, 0] - e[:, 2]) ** 2)))
+        slip_cov = float(np.mean(np.abs(e[:, 0] - e[:, 2]) <= 1.96 * e[:, 1]))
+        dphi_rmse = float(np.sqrt(np.mean((e[:, 3] - e[:, 5]) ** 2)))
+        dphi_cov = float(np.mean(np.abs(e[:, 3] - e[:, 5]) <= 1.96 * e[:, 4]))
+        res.update(slip_rmse=slip_rmse, slip_coverage=slip_cov, dphi_rmse=dphi_rmse, dphi_coverage=dphi_cov)
+        print(f"  slip: RMSE {slip_rmse:.3f}, 95% interval covers the truth in {100 * slip_cov:.0f}% of cycles",
+              file=out)
+        print(f"  dphi: RMSE {dphi_rmse:.3f} rad, 95% interval covers the truth in {100 * dphi_cov:.0f}% of cycles",
+              file=out)
+    lost = sum(wc.get("frames_lost", 0) for k, wc in live.counters().items() if k.startswith("wheel"))
+    stuck = sum(wc.get("stuck_samples", 0) for k, wc in live.counters().items() if k.startswith("wheel"))
+    bad = source_counters.get("crc_errors", 0) + source_counters.get("malformed", 0)
+    unknown = source_counters.get("unknown_id", 0)
+    received = source_counters.get("frames_ok", source_counters.get("ok", 0))
+    res.update(frames_received=received, frames_lost=lost)
+    line = f"  frames: {received} received, {lost} lost"
+    if bad:
+        line += f", {bad} corrupted or malformed segments skipped"
+    if unknown:
+        line += f", {unknown} unknown CAN IDs skipped"
+    if stuck:
+        line += f", {stuck} stuck-sensor samples not used"
+    print(line, file=out)
+    if device_report:
+        inj = device_report.get("injected", {})
+        if inj.get("frames_lost") or inj.get("stuck_samples") or inj.get("unknown_sent") or inj.get("disconnects"):
+            print(f"  the device injected: {inj.get('frames_dropped', 0)} dropped, {inj.get('frames_corrupted', 0)} "
+                  f"corrupted, {inj.get('frames_lost_disconnected', 0)} lost in {inj.get('disconnects', 0)} "
+                  f"disconnection(s), {inj.get('stuck_samples', 0)} stuck samples, {inj.get('unknown_sent', 0)} "
+                  "unknown messages", file=out)
+    lat = live.latency()
+    dev, est = lat.get("device_to_intake", {}), lat.get("intake_to_estimate", {})
+    if dev.get("n"):
+        res.update(latency_median_ms=dev["median_ms"], latency_p99_ms=dev["p99_ms"])
+        print(f"  latency, device sample -> estimator intake: median {dev['median_ms']:.2f} ms, "
+              f"p99 {dev['p99_ms']:.2f} ms", file=out)
+    if est.get("n"):
+        print(f"  latency, cycle's closing sample -> estimate: median {est['median_ms']:.2f} ms, "
+              f"p99 {est['p99_ms']:.2f} ms", file=out)
+    out.flush()
+    return res
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+
+    from slipest.cli.live import LiveEstimation, feed_batches
+    from slipest.model.scenario import Scenario
+
+    if args.speed < 0 or not math.isfinite(args.speed):
+        raise SystemExit("slipest demo: --speed must be >= 0")
+    out = sys.stdout
+    doc = {k: (dict(v) if isinstance(v, dict) else list(v)) for k, v in DEMO_SCENARIO.items()}
+    doc["imu"]["seed"] = args.seed
+    scenario = Scenario.from_dict(doc)
+    period = 2 * math.pi / (scenario.n_legs * scenario.omega)
+    n_cycles = len(scenario.cycles) if args.cycles is None else max(1, min(args.cycles, len(scenario.cycles)))
+    duration = n_cycles * period
+    if n_cycles < len(scenario.cycles):
+        duration += 0.05  # the first samples of the next cycle close the last one driven
+    speed = args.speed
+
+    def _term(signum, frame):
+        raise KeyboardInterrupt
+
+    old_term = signal.signal(signal.SIGTERM, _term)
+    children: list[_Child] = []
+    source = None
+    device = None
+    display = _Display(scenario, out)
+    tmp = tempfile.TemporaryDirectory(prefix="slipest-demo-")
+    device_report_path = os.path.join(tmp.name, "device.json")
+    code = 0
+    try:
+        scen_path = os.path.join(tmp.name, "demo.toml")
+        with open(scen_path, "w") as fh:
+            fh.write(scenario_toml(doc))
+        link_name = "a pseudo-terminal" if args.bus == "serial" else "a CAN bus (slipest can-server)"
+        faster = f", shown {speed:g}x faster" if speed not in (0, 1) else ""
+        print(f"slipest demo: {n_cycles} leg cycles ({n_cycles * period:.0f} s of driving{faster}) over {link_name}",
+              file=out, flush=True)
+        live = LiveEstimation(n_legs=scenario.n_legs, use_reference=False, sim_speed=speed or None,
+                              seq_modulus=1 << 16 if args.bus == "serial" else 256,
+                              time_modulus=None if args.bus == "serial" else 0.65536,
+                              on_estimate=display, source="demo")
+        live.warmup()
+        dev_args = [sys.executable, "-m", "firmware_sim", args.bus, "--scenario", scen_path, "--speed", f"{speed:g}",
+                    "--duration", f"{duration:.6f}", "--send-reference", "--report", device_report_path, "--quiet",
+                    "--linger", "0.3"]
+        if args.faults:
+            dev_args += _fault_args(args.bus, period, n_cycles)
+        if args.bus == "serial":
+            from slipest.io.serial_source import SerialSource
+
+            link = os.path.join(tmp.name, "imu")
+            device = _Child(dev_args + ["--link", link, "--settle", "0.05"])
+            children.append(device)
+            device.expect("serial device", 60)
+            print(f"slipest demo: virtual device (pid {device.p.pid}) on {link}", file=out, flush=True)
+            source = SerialSource(link).start(wait_open=10)
+            feed = lambda bs: feed_batches(live, bs, 1e-6)  # noqa: E731
+        else:
+            from slipest.io.bus_args import BusConfig
+            from slipest.io.can_source import CanSource
+
+            server = _Child([sys.executable, "-m", "slipest.cli.main", "can-server", "--port", "0"])
+            children.append(server)
+            port = int(server.expect("listening on", 30).rsplit(":", 1)[1])
+            config = BusConfig("socketcand", "vcan0", {"host": "127.0.0.1", "port": port})
+            source = CanSource(config).start(wait_open=10)
+            live.on_estimate = lambda w, e, i: (source.publish(w, e), display(w, e, i))
+            device = _Child(dev_args + ["-i", "socketcand", "-c", "vcan0", "--bus-option", "host=127.0.0.1",
+                                        "--bus-option", f"port={port}"])
+            children.append(device)
+            print(f"slipest demo: CAN server (pid {server.p.pid}) on 127.0.0.1:{port}, virtual device (pid "
+                  f"{device.p.pid}); estimates are published back on the bus", file=out, flush=True)
+            feed = lambda bs: feed_batches(live, bs, 1.0)  # noqa: E731
+        display.header()
+        last_data = time.monotonic()
+        while True:
+            batches = source.get(0.05)
+            now = time.monotonic()
+            if batches:
+                feed(batches)
+                last_data = now
+            if device.p.poll() is not None and now - last_data > 0.5:
+                break
+            if now - last_data > 30:
+                print("slipest demo: no data from the device for 30 s; giving up", file=sys.stderr)
+                code = 1
+                break
+        if device.p.wait(10) != 0:
+            print("slipest demo: the device failed: " + " | ".join(device.err[-5:]), file=sys.stderr)
+            code = 1
+    except KeyboardInterrupt:
+        print("\nslipest demo: interrupted", file=out)
+    except (OSError, RuntimeError) as exc:
+        print(f"slipest demo: {exc}", file=sys.stderr)
+        code = 1
+    finally:
+        for child in reversed(children):
+            child.stop()
+        if source is not None:
+            source.close()
+        signal.signal(signal.SIGTERM, old_term)
+    try:
+        report = None
+        if os.path.exists(device_report_path):
+            with open(device_report_path) as fh:
+                report = json.load(fh)
+        if source is not None:
+            live.close()
+            res = _summary(display, live, source.counters(), report, out)
+            if code == 0 and res["estimated"] == 0:
+                print("slipest demo: no cycle was estimated", file=sys.stderr)
+                code = 1
+    finally:
+        tmp.cleanup()
+    return code
+
+
+def _fault_args(bus: str, period: float, n_cycles: int) -> list[str]:
+    """A few faults inside feature windows of the first cycles (window: 1.5 T .. 2 T of cycle 1, ...)."""
+    def window(k: int, frac: float) -> float:
+        return (k + 0.5 + 0.5 * frac) * period
+
+    faults = [f"drop@{window(1, 0.3):.3f}:n=1", f"stuck@{window(3, 0.2):.3f}:n=200,wheel=0"]
+    if n_cycles > 5:
+        faults.append(f"disconnect@{window(5, 0.5):.3f}:down=0.3")
+    if bus == "serial":
+        faults.append(f"corrupt@{window(2, 0.4):.3f}:n=3")
+    else:
+        faults.append(f"unknown-ids@{window(2, 0.4):.3f}:n=25")
+    out = []
+    for f in faults:
+        out += ["--fault", f]
+    return out

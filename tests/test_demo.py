@@ -1,0 +1,55 @@
+"""`slipest demo`: the virtual device and the estimator as separate processes, short runs on both links."""
+
+from __future__ import annotations
+
+import re
+
+from slipest.cli.demo import DEMO_SCENARIO, scenario_toml
+from slipest.model.scenario import Scenario
+from tests.hil_support import slipest_cmd
+
+
+def _estimate_lines(lines):
+    return [line for line in lines if re.match(r"^\s+\d+\s+[\d.]+\s+[\d.]+ ±", line)]
+
+
+def test_demo_scenario_round_trips_through_toml():
+    import tomllib
+
+    doc = tomllib.loads(scenario_toml(DEMO_SCENARIO))
+    sc = Scenario.from_dict(doc)
+    assert len(sc.cycles) == 40 and {round(c.kS) for c in sc.cycles} == {700, 1000, 1400}
+    assert min(sc.slips) == 0.2 and max(sc.slips) == 0.45  # slip and soil change along the drive
+
+
+def test_demo_over_a_pty_with_faults_exits_0_and_counts_what_was_injected():
+    proc = slipest_cmd("demo", "--speed", "20", "--cycles", "10", "--faults")
+    try:
+        assert proc.wait(120) == 0, proc.stderr
+    finally:
+        proc.stop()
+    out = proc.lines
+    assert any("virtual device (pid" in line for line in out)
+    est = _estimate_lines(out)
+    assert len(est) >= 3  # estimates beside the truth, one line per cycle
+    flagged = [line for line in out if line.rstrip().endswith(" nan")]
+    assert len(flagged) >= 3  # the dropped frame, the corruption, the stuck sensor: never estimated from
+    text = "\n".join(out)
+    assert re.search(r"slip: RMSE 0\.\d+, 95% interval covers the truth in \d+% of cycles", text)
+    assert re.search(r"the device injected: 1 dropped, 3 corrupted, \d+ lost in 1 disconnection", text)
+    assert re.search(r"corrupted or malformed segments skipped, \d+ stuck-sensor samples not used", text)
+    assert re.search(r"latency, device sample -> estimator intake: median [\d.]+ ms, p99 [\d.]+ ms", text)
+
+
+def test_demo_over_the_can_server_exits_0_with_a_summary():
+    proc = slipest_cmd("demo", "--bus", "can", "--speed", "20", "--cycles", "5")
+    try:
+        assert proc.wait(120) == 0, proc.stderr
+    finally:
+        proc.stop()
+    text = "\n".join(proc.lines)
+    assert "CAN server (pid" in text and "published back on the bus" in text
+    assert len(_estimate_lines(proc.lines)) >= 3
+    m = re.search(r"slip: RMSE (0\.\d+)", text)
+    assert m and float(m.group(1)) < 0.15
+    assert re.search(r"frames: \d+ received, 0 lost", text)

@@ -1,0 +1,298 @@
+"""The virtual device (firmware_sim): frames, pacing, faults, report; real ptys and buses."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import select
+import threading
+import time
+import tty
+
+import can
+import numpy as np
+import pytest
+import serial
+
+from firmware_sim.can_link import CanLink
+from firmware_sim.device import KIND_IMU, Device, ScenarioFeed, wrap_angle
+from firmware_sim.faults import FaultInjector, FaultPlan, parse_fault
+from slipest.io.bus_args import BusConfig
+from slipest.io.can_messages import CanDecoder, ImuMessage, SlipReferenceMessage
+from slipest.io.serial_frames import FrameDecoder, ImuSample, SlipReference, encode_imu_samples
+from slipest.model.params import StickSlipParams
+from slipest.model.scenario import Scenario
+from tests.hil_support import firmware_sim, serial_device
+
+PERIOD = 2 * math.pi / (4 * 0.63)  # one leg cycle of the default wheel-leg [s]
+
+
+def two_cycles(seed=1, slip=(0.2, 0.3)) -> Scenario:
+    return Scenario.per_cycle(StickSlipParams(), imu={"noise_g": 0.01, "seed": seed}, slip=list(slip))
+
+
+# --- the feed (pure) ------------------------------------------------------------------------------
+
+
+def test_feed_interleaves_wheels_in_time_order_with_a_reference_before_each_cycle():
+    feed = ScenarioFeed([two_cycles(1), two_cycles(2)], send_reference=True)
+    tables = list(feed)
+    kind = np.concatenate([t.kind for t in tables])
+    wheel = np.concatenate([t.wheel for t in tables])
+    seq = np.concatenate([t.seq for t in tables])
+    t = np.concatenate([t.t for t in tables])
+    theta = np.concatenate([t.theta for t in tables])
+    slip = np.concatenate([t.slip for t in tables])
+    assert (np.diff(t) >= 0).all()
+    imu = kind == KIND_IMU
+    for w in (0, 1):
+        s = seq[imu & (wheel == w)]
+        assert (s == np.arange(s.size)).all()  # one counter per wheel, +1 per frame
+        assert (seq[~imu & (wheel == w)] == [0, 1]).all()  # one reference per cycle
+    assert imu.sum() == feed.expected_imu_frames
+    assert theta[imu].min() >= -math.pi and theta[imu].max() < math.pi  # wrapped like a device
+    refs = np.flatnonzero(~imu)
+    assert (kind[refs[:2] + 2] == KIND_IMU).all() and t[refs[2]] == pytest.approx(PERIOD, abs=1e-3)
+    assert slip[refs].tolist() == pytest.approx([0.2, 0.2, 0.3, 0.3])
+    # the wheels' noise differs (own seeds), the physics does not
+    az0 = np.concatenate([tb.az[(tb.kind == KIND_IMU) & (tb.wheel == 0)] for tb in tables])
+    az1 = np.concatenate([tb.az[(tb.kind == KIND_IMU) & (tb.wheel == 1)] for tb in tables])
+    assert not np.array_equal(az0, az1) and abs(az0.mean() - az1.mean()) < 0.01
+
+
+def test_feed_duration_stops_the_stream():
+    feed = ScenarioFeed([two_cycles()], duration=1.0)
+    t = np.concatenate([tb.t for tb in feed])
+    assert t.size == 1000 and t[-1] < 1.0
+
+
+def test_wrap_angle_is_minus_pi_to_pi():
+    got = wrap_angle([math.pi, -math.pi, 3 * math.pi + 0.1]).tolist()
+    assert got == pytest.approx([-math.pi, -math.pi, -math.pi + 0.1])
+
+
+# --- faults (pure) --------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("text", ["bogus@1", "drop", "drop@x", "drop@1:n=0", "drop@1:size=3", "stuck@1:wheel=all",
+                                  "disconnect@-1"])
+def test_bad_fault_specs_are_refused_with_a_reason(text):
+    with pytest.raises(ValueError, match="fault"):
+        parse_fault(text)
+
+
+def test_fault_spec_parsing():
+    f = parse_fault("drop@2.5:n=7,wheel=all")
+    assert (f.kind, f.at, f.params) == ("drop", 2.5, {"n": 7, "wheel": None})
+    assert parse_fault("disconnect@1:down=0.25").params == {"down": 0.25}
+
+
+def test_corrupted_frames_are_exactly_the_ones_the_decoder_rejects():
+    n = 2000
+    frames_bytes = encode_imu_samples(0, np.arange(n), np.arange(n) * 1000, np.full(n, 9.81), np.zeros(n))
+    frames = [frames_bytes[i * 24:(i + 1) * 24] for i in range(n)]
+    inj = FaultInjector(FaultPlan(corrupt_rate=0.01, seed=5), 1)
+    out, lost = inj.corrupt_bytes(frames, np.zeros(n, bool))
+    changed = np.array([a != b for a, b in zip(out, frames)])
+    dec = FrameDecoder()
+    got = dec.feed(b"".join(out) + b"\x00")
+    delivered = {f.seq for f in got}
+    assert 100 < changed.sum() < 600 and inj.tally.bytes_corrupted >= changed.sum()
+    # a changed frame never gets through; neither does the one after a corrupted delimiter
+    assert delivered == set(np.flatnonzero(~lost).tolist())
+    assert (lost >= changed).all() and lost.sum() > changed.sum()
+    assert dec.counters()["seq_gaps"] == lost[1:].sum() - (lost[-1] and 1) * 0 - _trailing(lost)
+
+
+def _trailing(mask) -> int:
+    """Lost frames at the end: no later frame reveals them as a gap."""
+    return int(np.argmax(~mask[::-1])) if mask[-1] else 0
+
+
+# --- over a real pseudo-terminal, device in its own process ---------------------------------------
+
+
+def _read_all(port: str, until, timeout: float = 30.0) -> tuple[list, dict]:
+    dec = FrameDecoder()
+    frames = []
+    ser = serial.Serial(port, timeout=0.1)
+    deadline = time.monotonic() + timeout
+    try:
+        while time.monotonic() < deadline and not until():
+            try:
+                frames += dec.feed(ser.read(ser.in_waiting or 1))
+            except serial.SerialException:
+                break  # the device closed its end: everything it sent has been read
+    finally:
+        ser.close()
+    return frames, dec.counters()
+
+
+def test_serial_device_in_another_process_reports_what_it_sent_and_injected(tmp_path):
+    report = tmp_path / "report.json"
+    # window of cycle 1 (the propulsive half-stance) starts at 1.5 T
+    proc = firmware_sim("serial", "--cycles", "3", "--speed", "25", "--noise", "0.01", "--seed", "3", "--wheels", "2",
+                        "--send-reference", "--report", str(report), "--linger", "0.2",
+                        "--fault", f"drop@{1.6 * PERIOD:.3f}:n=5,wheel=1",
+                        "--fault", f"corrupt@{1.7 * PERIOD:.3f}:n=4,wheel=0",
+                        "--fault", "unknown-ids@3.0:n=7",
+                        "--fault", f"stuck@{2.6 * PERIOD:.3f}:n=120,wheel=0")
+    try:
+        frames, c = _read_all(serial_device(proc), until=lambda: proc.p.poll() is not None)
+        assert proc.wait() == 0, proc.stderr
+    finally:
+        proc.stop()
+    rep = json.loads(report.read_text())
+    sent, inj = rep["sent"], rep["injected"]
+    imu = [f for f in frames if isinstance(f, ImuSample)]
+    refs = [f for f in frames if isinstance(f, SlipReference)]
+    assert sent["imu_frames_generated"] == 2 * 7480 and sent["ref_frames_generated"] == 6
+    assert (inj["frames_dropped"], inj["frames_corrupted"], inj["unknown_sent"]) == (5, 4, 7)
+    assert inj["dropped_by_wheel"] == [0, 5] and inj["corrupted_by_wheel"] == [4, 0]
+    # reconciliation: everything sent intact arrived, every loss is counted
+    assert len(imu) + len(refs) == sent["imu_frames_sent"] + sent["ref_frames_sent"] - inj["frames_corrupted"]
+    assert c["seq_gaps"] == inj["frames_lost"] == 9
+    assert c["seq_gaps_by_wheel"][0] == 4 and c["seq_gaps_by_wheel"][1] == 5
+    assert c["crc_errors"] + c["malformed"] >= 4 + 7
+    assert len(refs) == 6 and sorted({round(r.slip, 4) for r in refs}) == [0.25]
+    # the stuck sensor: 120 identical az values of wheel 0
+    az0 = np.array([f.az for f in imu if f.wheel == 0], np.float32)
+    run = np.flatnonzero(np.diff(az0) == 0)
+    assert inj["stuck_samples"] == 120 and run.size >= 119
+    assert rep["lateness"]["n"] > 0 and rep["t0_us"] > 0
+
+
+def test_serial_disconnect_announces_a_new_pty_behind_a_stable_link(tmp_path):
+    link = tmp_path / "imu"
+    report = tmp_path / "report.json"
+    proc = firmware_sim("serial", "--link", str(link), "--cycles", "2", "--speed", "5", "--noise", "0.01",
+                        "--fault", "disconnect@1.0:down=0.2", "--report", str(report), "--linger", "0.3")
+    try:
+        first = serial_device(proc)
+        assert link.resolve() == type(link)(first).resolve()
+        dec = FrameDecoder()
+        frames = []
+        errors = 0
+        deadline = time.monotonic() + 30
+        ser = serial.Serial(str(link), timeout=0.1)
+        while time.monotonic() < deadline and proc.p.poll() is None:
+            try:
+                frames += dec.feed(ser.read(ser.in_waiting or 1))
+            except serial.SerialException:  # the device went away: reopen the link when it is back
+                errors += 1
+                ser.close()
+                dec.reset()
+                while time.monotonic() < deadline and proc.p.poll() is None:
+                    try:
+                        ser = serial.Serial(str(link), timeout=0.1)
+                        break
+                    except serial.SerialException:
+                        time.sleep(0.02)
+        ser.close()
+        assert proc.wait() == 0
+    finally:
+        proc.stop()
+    rep = json.loads(report.read_text())
+    inj = rep["injected"]
+    assert inj["disconnects"] == 1 and inj["reconnects"] == 1 and inj["frames_lost_disconnected"] > 300
+    assert rep["link"]["bytes_discarded_at_disconnect"] == 0  # every sent byte was read before the cut
+    assert rep["link"]["drains_unverified"] == 0
+    assert errors >= 1
+    assert any("fault: link back" in line for line in proc.lines)
+    seqs = np.array([f.seq for f in frames])
+    jumps = np.diff(seqs)
+    assert (jumps >= 1).all()
+    # the one hole in the sequence is the outage, exactly as long as the device says
+    assert int((jumps - 1).sum()) == inj["frames_lost_disconnected"]
+    assert len(frames) + inj["frames_lost_disconnected"] == rep["sent"]["imu_frames_generated"]
+
+
+def test_device_stops_cleanly_on_sigterm_and_still_writes_its_report(tmp_path):
+    report = tmp_path / "report.json"
+    proc = firmware_sim("serial", "--cycles", "8", "--speed", "1", "--report", str(report))
+    try:
+        port = serial_device(proc)
+        ser = serial.Serial(port, timeout=0.1)
+        proc.wait_line("streaming")
+        time.sleep(0.3)
+        proc.signal()
+        assert proc.wait(20) == 0
+        ser.close()
+    finally:
+        proc.stop()
+    rep = json.loads(report.read_text())
+    assert rep["finished"] is False and 0 < rep["sent"]["imu_frames_sent"] < 8 * 2493
+    assert proc.lines[-1] == "firmware-sim: stopped"
+
+
+def test_cli_refuses_byte_corruption_on_can():
+    proc = firmware_sim("can", "-i", "virtual", "-c", "x", "--corrupt-rate", "0.01")
+    assert proc.wait(30) == 2
+    assert "serial fault" in proc.stderr
+
+
+# --- on a python-can bus ------------------------------------------------------------------------
+
+
+def test_can_device_sends_dbc_messages_references_and_unknown_ids_on_a_virtual_bus():
+    channel = "fsim-test"
+    rx = can.Bus(interface="virtual", channel=channel)
+    link = CanLink(BusConfig("virtual", channel, {}))
+    plan = FaultPlan(scheduled=(parse_fault("unknown-ids@1.0:n=9"), parse_fault("drop@1.5:n=3")))
+    feed = ScenarioFeed([two_cycles(1), two_cycles(2)], send_reference=True)
+    dev = Device(feed, link, plan, speed=0, linger=0)
+    dec = CanDecoder()
+    got = []
+    done = threading.Event()
+
+    def receive():
+        while True:
+            msg = rx.recv(0.3)
+            if msg is None:
+                if done.is_set():
+                    return
+                continue
+            rec = dec.decode(msg)
+            if rec is not None:
+                got.append(rec)
+
+    th = threading.Thread(target=receive)
+    th.start()
+    try:
+        rep = dev.run()
+    finally:
+        done.set()
+        th.join(10)
+        rx.shutdown()
+    c = dec.counters()
+    imu = [r for r in got if isinstance(r, ImuMessage)]
+    refs = [r for r in got if isinstance(r, SlipReferenceMessage)]
+    assert rep["injected"]["unknown_sent"] == 9 and c["unknown_id"] == 9
+    assert len(refs) == 4 and sorted(r.slip for r in refs) == pytest.approx([0.2, 0.2, 0.3, 0.3], abs=1e-4)
+    assert len(imu) == 2 * 4987 - 3 and c["counter_gaps"] == 3 and c["counter_gaps_by_wheel"][0] == 3
+    assert {r.wheel for r in imu} == {0, 1}
+    assert all(-math.pi <= r.theta <= math.pi for r in imu)
+
+
+def test_device_writes_to_a_given_port_with_pyserial(tmp_path):
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    report = tmp_path / "report.json"
+    proc = firmware_sim("serial", "--port", os.ttyname(slave), "--cycles", "1", "--speed", "20",
+                        "--report", str(report), "--linger", "0")
+    dec = FrameDecoder()
+    frames = []
+    try:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and len(frames) < 2493:
+            ready, _, _ = select.select([master], [], [], 0.2)
+            if ready:
+                frames += dec.feed(os.read(master, 65536))
+        assert proc.wait(30) == 0, proc.stderr
+    finally:
+        proc.stop()
+        os.close(master)
+        os.close(slave)
+    assert [f.seq for f in frames] == list(range(2494)) and dec.counters()["crc_errors"] == 0
+    assert json.loads(report.read_text())["link"]["type"] == "port"
