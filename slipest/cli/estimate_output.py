@@ -7,8 +7,9 @@ can``) put the wheel index first::
 
     wheel,cycle,t_end,delta_a,slip,slip_std,dphi,dphi_std,kS,kS_std,phiS,phiS_std,change_prob,slip_ref,n_samples,quality
 
-Values: integers as integers, floats with 6 significant digits, NaN (a
-cycle not estimated) as ``nan``, booleans as 1/0.  The same formatting as
+Values: integers as integers, times (``t_*`` columns, seconds) to the
+microsecond, other floats with 6 significant digits, NaN (a cycle not
+estimated) as ``nan``, booleans as 1/0.  The same formatting as
 ``slipest replay``'s CSV (a test compares a live run with a replay of its
 recording, row by row).
 """
@@ -23,15 +24,17 @@ from slipest.online import ESTIMATE_FIELDS
 COLUMNS = ESTIMATE_FIELDS
 
 
-def format_value(v) -> str:
-    """One value as written in a row."""
+def format_value(v, column: str = "") -> str:
+    """One value as written in a row (``column``: its name; times get microseconds)."""
     if isinstance(v, (bool, np.bool_)):
         return "1" if v else "0"
     if isinstance(v, (int, np.integer)):
         return str(int(v))
     if isinstance(v, (float, np.floating)):
         v = float(v)
-        return "nan" if v != v else f"{v:.6g}"
+        if v != v:
+            return "nan"
+        return f"{v:.6f}" if column.startswith("t_") else f"{v:.6g}"
     return str(v)
 
 
@@ -42,7 +45,7 @@ def header(prefix: tuple[str, ...] = ()) -> str:
 
 def row(estimate, prefix: tuple = ()) -> str:
     """One estimate as a CSV row (without newline); ``prefix``: values of the leading columns."""
-    return ",".join([format_value(p) for p in prefix] + [format_value(getattr(estimate, c)) for c in COLUMNS])
+    return ",".join([format_value(p) for p in prefix] + [format_value(getattr(estimate, c), c) for c in COLUMNS])
 
 
 def parse_rows(lines, prefix: tuple[str, ...] = ()) -> list[dict]:

@@ -1,0 +1,160 @@
+"""Thesis Eq. 5.15 exactly as stated, as a slip inverse (baseline, kept for comparison).
+
+    i = aIV + bIV * Da,   bIV = amu + bmu * dphi,   aIV = cI + cmu * dphi + cK * kS
+
+``Da`` [g] (max minus min of the hub's vertical acceleration over the
+feature window), ``dphi = phiS - phiD`` [rad], ``kS`` [N/m], slip ``i`` [-].
+The coefficients come from the shipped calibration
+(``slipest/data/calibration.json``, section ``eq515``, written by
+``tools/calibrate.py``; see :mod:`slipest.calibration`).
+
+Two directions, both closed form:
+
+* :meth:`Eq515Inverse.slip_from_da`: slip from ``Da`` with ``dphi`` and
+  ``kS`` known (the thesis's slip estimate);
+* :meth:`Eq515Inverse.dphi_from_da`: ``dphi`` from ``Da`` with a reference
+  slip and ``kS`` known (the thesis's use of the equation to learn the soil):
+  ``dphi = (i - cI - cK kS - amu Da) / (cmu + bmu Da)``.
+
+Uncertainty: the equation carries none of its own; the standard deviation
+reported is the calibration's end-to-end slip RMSE of Eq. 5.15 over its
+sweep (``rmse_end_to_end``), an honest, soil-independent figure. In this
+model that RMSE is large (spec section 5: the second-level laws do not
+hold); the number is reported, not tuned.
+
+:class:`Eq515Tracker` is the recursive use: a 1-state filterpy Kalman
+filter on ``dphi`` fed by :meth:`dphi_from_da` whenever a reference slip
+comes, used for the slip of the other cycles.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from filterpy.kalman import KalmanFilter
+
+from slipest.features import INDEX
+from slipest.inverse.base import SlipInverse, Soil
+
+
+class Eq515Inverse(SlipInverse):
+    """Eq. 5.15 with coefficients ``amu, bmu, cI, cmu, cK`` (``cmu``, ``bmu`` [1/rad]-scaled, ``cK`` [m/N]).
+
+    ``slip_std``: standard deviation [-] attached to every slip estimate.
+    """
+
+    name = "eq515"
+    needs_soil = ("kS", "dphi")
+    features = ("delta_a",)
+
+    def __init__(self, amu: float, bmu: float, cI: float, cmu: float, cK: float, slip_std: float):
+        vals = dict(amu=amu, bmu=bmu, cI=cI, cmu=cmu, cK=cK, slip_std=slip_std)
+        bad = [k for k, v in vals.items() if not math.isfinite(v)]
+        if bad:
+            raise ValueError(f"Eq. 5.15 coefficient(s) not finite: {bad}")
+        if not slip_std > 0:
+            raise ValueError(f"slip_std={slip_std} must be > 0")
+        self.amu, self.bmu, self.cI, self.cmu, self.cK = (float(v) for v in (amu, bmu, cI, cmu, cK))
+        self.slip_std = float(slip_std)
+
+    @classmethod
+    def from_calibration(cls, cal: dict | None = None) -> "Eq515Inverse":
+        """From a calibration dict (default: the shipped one, :func:`slipest.calibration.load_calibration`)."""
+        if cal is None:
+            from slipest.calibration import load_calibration
+
+            cal = load_calibration()
+        c = cal["eq515"] if "eq515" in cal else cal
+        return cls(c["amu"], c["bmu"], c["cI"], c["cmu"], c["cK"], c["rmse_end_to_end"])
+
+    def coefficients(self) -> dict:
+        return dict(amu=self.amu, bmu=self.bmu, cI=self.cI, cmu=self.cmu, cK=self.cK)
+
+    def slip_from_da(self, da_g, dphi, kS):
+        """Slip [-] from ``Da`` [g], ``dphi`` [rad], ``kS`` [N/m] (Eq. 5.15; not clipped). Broadcasts."""
+        da_g, dphi, kS = (np.asarray(v, dtype=float) for v in (da_g, dphi, kS))
+        a_iv = self.cI + self.cmu * dphi + self.cK * kS
+        b_iv = self.amu + self.bmu * dphi
+        return a_iv + b_iv * da_g
+
+    def dphi_from_da(self, da_g, slip, kS):
+        """``dphi`` [rad] from ``Da`` [g], a reference slip [-] and ``kS`` [N/m] (Eq. 5.15 solved for dphi).
+
+        NaN where ``cmu + bmu Da`` is 0 (``Da`` carries no information on ``dphi`` there). Broadcasts.
+        """
+        da_g, slip, kS = (np.asarray(v, dtype=float) for v in (da_g, slip, kS))
+        den = self.cmu + self.bmu * da_g
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(den != 0.0, (slip - self.cI - self.cK * kS - self.amu * da_g) / den, np.nan)
+
+    def dphi_std(self, da_g) -> np.ndarray:
+        """Standard deviation [rad] of :meth:`dphi_from_da`: ``slip_std / |cmu + bmu Da|`` (inf where 0)."""
+        den = np.abs(self.cmu + self.bmu * np.asarray(da_g, dtype=float))
+        with np.errstate(divide="ignore"):
+            return np.where(den > 0, self.slip_std / den, np.inf)
+
+    def slip(self, features, soil: Soil | None = None) -> tuple[float, float]:
+        self.check_soil(soil)
+        da = float(np.asarray(features, dtype=float)[INDEX["delta_a"]])
+        if not math.isfinite(da):
+            return math.nan, math.nan
+        return float(self.slip_from_da(da, soil.dphi, soil.kS)), self.slip_std
+
+    def slip_batch(self, features_2d, soil: Soil | None = None):
+        self.check_soil(soil)
+        da = np.atleast_2d(np.asarray(features_2d, dtype=float))[:, INDEX["delta_a"]]
+        s = self.slip_from_da(da, soil.dphi, soil.kS)
+        return s, np.where(np.isfinite(s), self.slip_std, np.nan)
+
+
+class Eq515Tracker:
+    """The thesis's recursive use of Eq. 5.15: learn ``dphi`` from reference slips, estimate slip from ``Da``.
+
+    State: ``dphi`` [rad], a random walk (process noise ``q`` [rad^2] per
+    cycle) in a 1-state :class:`filterpy.kalman.KalmanFilter`, started at
+    ``dphi0`` with standard deviation ``dphi0_std``. ``kS`` [N/m] must be
+    known (Eq. 5.15 has no way to learn it alongside ``dphi``).
+    :meth:`update` takes one cycle's ``Da`` [g] and, optionally, its
+    reference slip; returns ``(slip, slip_std, dphi, dphi_std)`` with the
+    slip from Eq. 5.15 at the current ``dphi`` (its std combines the
+    equation's RMSE and the ``dphi`` uncertainty through ``bmu Da + cmu``).
+    """
+
+    def __init__(self, inverse: Eq515Inverse, kS: float, dphi0: float = 0.175, dphi0_std: float = 0.1, q: float = 1e-4,
+                 dphi_known: bool = False):
+        if not (math.isfinite(kS) and kS > 0):
+            raise ValueError(f"kS={kS} N/m must be positive")
+        self.inv = inverse
+        self.kS = float(kS)
+        self.dphi_known = dphi_known
+        kf = KalmanFilter(dim_x=1, dim_z=1)
+        kf.x = np.array([[float(dphi0)]])
+        kf.P = np.array([[0.0 if dphi_known else float(dphi0_std) ** 2]])
+        kf.F = np.eye(1)
+        kf.H = np.eye(1)
+        kf.Q = np.array([[0.0 if dphi_known else float(q)]])
+        self.kf = kf
+
+    @property
+    def dphi(self) -> float:
+        return float(self.kf.x[0, 0])
+
+    @property
+    def dphi_std(self) -> float:
+        return math.sqrt(max(float(self.kf.P[0, 0]), 0.0))
+
+    def update(self, da_g: float, slip_ref: float | None = None):
+        """One cycle: ``Da`` [g], optional reference slip [-]. Returns ``(slip, slip_std, dphi, dphi_std)``."""
+        if not self.dphi_known:
+            self.kf.predict()
+        dphi, dstd = self.dphi, self.dphi_std
+        slip = float(self.inv.slip_from_da(da_g, dphi, self.kS))
+        sens = self.inv.cmu + self.inv.bmu * da_g
+        slip_std = math.sqrt(self.inv.slip_std**2 + (sens * dstd) ** 2)
+        if slip_ref is not None and math.isfinite(slip_ref) and not self.dphi_known:
+            z = float(self.inv.dphi_from_da(da_g, slip_ref, self.kS))
+            r = float(self.inv.dphi_std(da_g))
+            if math.isfinite(z) and math.isfinite(r):
+                self.kf.update(np.array([[z]]), R=np.array([[r * r]]))
+        return slip, slip_std, self.dphi, self.dphi_std

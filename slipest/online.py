@@ -1,0 +1,379 @@
+"""The API a rover program calls: samples in, one slip estimate per leg cycle out.
+
+    from slipest.online import SlipEstimator
+
+    est = SlipEstimator(n_legs=4)                 # soil unknown, learnt as it goes
+    for t, az, theta in imu_and_encoder:          # live: one sample at a time
+        for e in est.push(t, az, theta):
+            print(e.cycle, e.slip, e.slip_std, e.dphi, e.quality)
+
+    est.push_many(t_array, az_array, theta_array) # replay: arrays, same results
+
+Samples: ``t`` [s], ``az`` [m/s^2] vertical specific force as the IMU
+reports it (gravity included, +9.81 at rest), ``theta`` [rad] wheel-leg
+angle (0 at a midstance; wrapped or not). The stream is cut into leg
+cycles by :class:`slipest.segmentation.CycleSegmenter`; each closed cycle
+gives exactly one :class:`Estimate`, on the sample that closes it. A cycle
+that cannot be estimated (segmenter flag such as ``"gap"``, ``"nan"``,
+``"saturated"``, ``"partial"``, or features that could not be computed)
+or a leg speed outside the models' (``"speed"``)
+still gives an Estimate, with NaN values and ``quality`` naming the reason:
+nothing is dropped silently, and nothing is estimated from corrupted data.
+
+Methods:
+
+* ``"default"``: the multi-feature surrogate with the recursive soil filter
+  (:class:`slipest.estimator.SoilSlipEstimator`). Works with the soil
+  unknown; a known soil (``soil=``) is used (complete: slip only; partial:
+  restricts the soil prior).
+* ``"eq515"``: thesis Eq. 5.15 on ``Da`` (:mod:`slipest.inverse.eq515`).
+  Needs ``kS`` and either ``dphi`` (slip from ``Da``) or
+  ``use_reference=True`` (``dphi`` learnt from reference slips by a
+  filterpy Kalman filter, as the thesis uses the equation).
+
+Reference slip: ``push(..., slip_ref=...)`` (per sample; e.g. a log's
+``slip`` column or a later message). It is **ignored** unless
+``use_reference=True``; a cycle's reference is the last of the
+finite references given with the samples since the previous cycle closed
+(the last one: a log's slip column holds one value a cycle; a later message
+replaces an earlier one) (also reported as ``Estimate.slip_ref``, used or not: a blind test can
+carry the truth along).
+
+The same object serves replay and live streams; :meth:`SlipEstimator.iter_estimates`
+runs it over an iterable of sample chunks and ``on_estimate`` calls back
+with every estimate as soon as it exists.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+from typing import Callable, Iterable, Iterator
+
+import numpy as np
+
+from slipest.features import DEFAULT_OMEGA, INDEX, cycle_features
+from slipest.inverse.base import Soil
+from slipest.segmentation import CycleSegmenter
+
+METHODS = ("default", "eq515")
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """One leg cycle's estimate.
+
+    cycle: the cycle's index ``k`` (midstance at ``theta = 2 pi k / nL``);
+    t_start, t_end [s]: times of the samples that opened and closed it;
+    delta_a [g]: ``Da``;
+    slip [-] and slip_std [-]; dphi, dphi_std [rad]; kS, kS_std [N/m] and
+    phiS, phiS_std [rad] where estimated (or known: std 0), else NaN;
+    change_prob [-]: probability the soil changed at this cycle (default
+    method; NaN otherwise); slip_ref [-]: the reference slip given with
+    this cycle's samples (the last finite one; NaN: none), whether used or not;
+    used_reference: the estimator learnt the soil from it; n_samples:
+    samples in the feature window; quality: ``"ok"``, or why the cycle was
+    not estimated (all estimated values NaN).
+    """
+
+    cycle: int
+    t_end: float
+    delta_a: float
+    slip: float
+    slip_std: float
+    dphi: float
+    dphi_std: float
+    quality: str
+    t_start: float
+    kS: float
+    kS_std: float
+    phiS: float
+    phiS_std: float
+    change_prob: float
+    slip_ref: float
+    used_reference: bool
+    n_samples: int
+
+    @property
+    def ok(self) -> bool:
+        return self.quality == "ok"
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+#: Column order of :class:`Estimate` (for CSV/JSON writers): the eight columns every slipest command
+#: prints (``cycle, t_end, delta_a, slip, slip_std, dphi, dphi_std, quality``), then the rest.
+ESTIMATE_FIELDS = tuple(f.name for f in fields(Estimate))
+
+
+def _soil_from(soil) -> Soil | None:
+    if soil is None or isinstance(soil, Soil):
+        return soil
+    if isinstance(soil, dict):
+        return Soil.from_args(**soil)
+    raise TypeError(f"soil must be a Soil, a dict of kS/phiS/phiD/dphi or None, not {type(soil).__name__}")
+
+
+class SlipEstimator:
+    """Online slip (and soil) estimation from ``(t, az, theta)`` samples; see the module docstring.
+
+    n_legs: legs of the wheel-leg. method: ``"default"`` or ``"eq515"``.
+    soil: known soil (a :class:`~slipest.inverse.base.Soil` or a dict with
+    any of ``kS`` [N/m], ``phiS``, ``phiD``, ``dphi`` [rad]), or None.
+    use_reference: learn the soil from reference slips (see module docstring).
+    on_estimate: callable called with each :class:`Estimate` as soon as it exists.
+    segmenter: options for :class:`~slipest.segmentation.CycleSegmenter`.
+    estimator: options for :class:`~slipest.estimator.SoilSlipEstimator`
+    (``hazard``, ``soil_temper``, ...). model / calibration: the inverse
+    model and calibration dicts to use instead of the shipped files.
+    speed_tol: a cycle whose mean leg speed differs from the one the models
+    were made at (0.63 rad/s) by more than this fraction is flagged
+    ``"speed"``, not estimated: the stick-slip waveform and its frequencies
+    depend on the speed, and the models know one speed only.
+    """
+
+    def __init__(
+        self,
+        n_legs: int = 4,
+        method: str = "default",
+        soil=None,
+        use_reference: bool = False,
+        on_estimate: Callable[[Estimate], None] | None = None,
+        segmenter: dict | None = None,
+        estimator: dict | None = None,
+        model=None,
+        calibration: dict | None = None,
+        speed_tol: float = 0.1,
+    ):
+        if method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}, not {method!r}")
+        self.n_legs = int(n_legs)
+        self.method = method
+        self.soil = _soil_from(soil)
+        self.use_reference = bool(use_reference)
+        self.on_estimate = on_estimate
+        self._seg_opts = dict(segmenter or {})
+        self._est_opts = dict(estimator or {})
+        self._model = model
+        self._calibration = calibration
+        if not speed_tol > 0:
+            raise ValueError(f"speed_tol={speed_tol} must be > 0")
+        self.speed_tol = float(speed_tol)
+        self._check_legs()
+        if method == "eq515":
+            from slipest.inverse.eq515 import Eq515Inverse
+
+            s = self.soil
+            if s is None or s.kS is None:
+                raise ValueError("method 'eq515' needs the soil's kS (Eq. 5.15 cannot learn it)")
+            if s.dphi is None and not self.use_reference:
+                raise ValueError("method 'eq515' needs the soil's dphi, or use_reference=True to learn it from reference slips")
+            self._eq515 = Eq515Inverse.from_calibration(calibration)
+        self.segmenter = CycleSegmenter(self.n_legs, **self._seg_opts)
+        self._make_filter()
+        self._reset_counts()
+        # load the compiled feature kernel now, not on the first cycle's latency (the segmenter hands
+        # over read-only arrays: numba compiles those separately)
+        ph = np.linspace(0.0, math.pi / self.n_legs, 64)
+        az = np.full(ph.size, 9.81)
+        for arr in (ph, az):
+            arr.flags.writeable = False
+        cycle_features(ph, az, ph / 0.63, n_legs=self.n_legs)
+
+    def _check_legs(self) -> None:
+        """The shipped models were made for one wheel-leg geometry: refuse another number of legs."""
+        if self.method == "eq515":
+            from slipest.calibration import load_calibration
+
+            cal = self._calibration if self._calibration is not None else load_calibration()
+            legs = int(cal.get("model", {}).get("params", {}).get("nL", 4))
+            self.model_omega = float(cal.get("model", {}).get("params", {}).get("omega", DEFAULT_OMEGA))
+            what = "the Eq. 5.15 calibration"
+        else:
+            from slipest.inverse.surrogate import load_inverse_model
+
+            model = self._model if self._model is not None else load_inverse_model()
+            legs = int(model.meta.get("training", {}).get("n_legs", 4))
+            self.model_omega = float(model.meta.get("training", {}).get("omega", DEFAULT_OMEGA))
+            what = "the inverse model"
+        if legs != self.n_legs:
+            raise ValueError(f"{what} was made for a {legs}-leg wheel-leg, not {self.n_legs} legs: "
+                             "recalibrate/retrain it for this geometry")
+
+    # ------------------------------------------------------------------
+    def _make_filter(self) -> None:
+        if self.method == "eq515":
+            from slipest.inverse.eq515 import Eq515Tracker
+
+            s = self.soil
+            known = s.dphi is not None
+            self.filter = Eq515Tracker(self._eq515, s.kS, dphi0=s.dphi if known else 0.175, dphi_known=known,
+                                       **self._est_opts)
+        else:
+            from slipest.estimator import SoilSlipEstimator
+
+            self.filter = SoilSlipEstimator(model=self._model, soil=self.soil, use_reference=self.use_reference,
+                                            n_legs=self.n_legs, **self._est_opts)
+
+    def _reset_counts(self) -> None:
+        self._ref = math.nan  # last finite reference slip since the last cycle closed
+        self._n_samples = 0
+        self._n_estimates = 0
+        self._n_flagged: dict[str, int] = {}
+        self._n_reference = 0
+
+    def reset(self) -> None:
+        """Forget the stream and everything learnt (segmenter, soil filter, counters)."""
+        self.segmenter = CycleSegmenter(self.n_legs, **self._seg_opts)
+        self._make_filter()
+        self._reset_counts()
+
+    @property
+    def counters(self) -> dict:
+        """``samples``, ``cycles`` (estimates emitted), ``cycles_ok``, ``cycles_flagged``,
+        ``flagged_<reason>`` per reason, ``reference_used``, and the segmenter's counters
+        prefixed ``segmenter_``."""
+        c = {
+            "samples": self._n_samples,
+            "cycles": self._n_estimates,
+            "cycles_ok": self._n_estimates - sum(self._n_flagged.values()),
+            "cycles_flagged": sum(self._n_flagged.values()),
+            "reference_used": self._n_reference,
+        }
+        for k, v in sorted(self._n_flagged.items()):
+            c[f"flagged_{k}"] = v
+        for k, v in self.segmenter.counters.items():
+            c[f"segmenter_{k}"] = v
+        return c
+
+    # ------------------------------------------------------------------
+    def _flagged(self, cyc, quality: str, ref: float) -> Estimate:
+        self._n_flagged[quality] = self._n_flagged.get(quality, 0) + 1
+        n = math.nan
+        return Estimate(cycle=int(cyc.k), t_end=float(cyc.t_end), delta_a=n, slip=n, slip_std=n, dphi=n, dphi_std=n,
+                        quality=quality, t_start=float(cyc.t_start), kS=n, kS_std=n, phiS=n, phiS_std=n,
+                        change_prob=n, slip_ref=ref, used_reference=False, n_samples=int(cyc.n_samples))
+
+    def _estimate(self, cyc, ref: float) -> Estimate:
+        if cyc.quality != "ok":
+            return self._flagged(cyc, cyc.quality, ref)
+        ph, tt = cyc.theta_phase, cyc.t
+        span = float(tt[-1] - tt[0]) if tt.size > 1 else 0.0
+        if span > 0 and abs((float(ph[-1] - ph[0]) / span) / self.model_omega - 1.0) > self.speed_tol:
+            return self._flagged(cyc, "speed", ref)
+        try:
+            f = cycle_features(ph, cyc.az, tt, n_legs=self.n_legs)
+        except ValueError:
+            return self._flagged(cyc, "features", ref)
+        if not np.all(np.isfinite(f)):
+            return self._flagged(cyc, "features", ref)
+        da = float(f[INDEX["delta_a"]])
+        use = self.use_reference and math.isfinite(ref)
+        if self.method == "eq515":
+            use = use and not self.filter.dphi_known
+            slip, sd, dphi, dsd = self.filter.update(da, ref if use else None)
+            s = self.soil
+            kS, kstd = s.kS, 0.0
+            phiS = s.phiS if s.phiS is not None else math.nan
+            pstd = 0.0 if s.phiS is not None else math.nan
+            est = Estimate(cycle=int(cyc.k), t_end=float(cyc.t_end), delta_a=da, slip=slip, slip_std=sd, dphi=dphi,
+                           dphi_std=dsd, quality="ok", t_start=float(cyc.t_start), kS=kS, kS_std=kstd, phiS=phiS,
+                           phiS_std=pstd, change_prob=math.nan, slip_ref=ref, used_reference=bool(use),
+                           n_samples=int(cyc.n_samples))
+        else:
+            r = self.filter.update(f, ref if use else None)
+            use = r.used_reference
+            est = Estimate(cycle=int(cyc.k), t_end=float(cyc.t_end), delta_a=da, slip=r.slip, slip_std=r.slip_std,
+                           dphi=r.dphi, dphi_std=r.dphi_std, quality="ok", t_start=float(cyc.t_start), kS=r.kS,
+                           kS_std=r.kS_std, phiS=r.phiS, phiS_std=r.phiS_std, change_prob=r.change_prob,
+                           slip_ref=ref, used_reference=bool(use), n_samples=int(cyc.n_samples))
+        if use:
+            self._n_reference += 1
+        return est
+
+    def _emit(self, cycles, refs) -> list:
+        out = []
+        for cyc, ref in zip(cycles, refs):
+            e = self._estimate(cyc, ref)
+            self._n_estimates += 1
+            if self.on_estimate is not None:
+                self.on_estimate(e)
+            out.append(e)
+        return out
+
+    def push(self, t: float, az: float, theta: float, slip_ref: float | None = None) -> list:
+        """Add one sample (``t`` [s], ``az`` [m/s^2], ``theta`` [rad], optional reference slip [-]).
+
+        Returns the estimates of the cycles it closed (usually none, at most one or two).
+        """
+        self._n_samples += 1
+        cycles = self.segmenter.push(t, az, theta)
+        out = []
+        if cycles:
+            ref = self._ref
+            self._ref = math.nan
+            out = self._emit(cycles, [ref] + [math.nan] * (len(cycles) - 1))
+        if slip_ref is not None and math.isfinite(slip_ref):
+            self._ref = float(slip_ref)
+        return out
+
+    def push_many(self, t, az, theta, slip_ref=None) -> list:
+        """Add arrays of samples (and optionally one reference slip per sample, NaN: none).
+
+        Returns the estimates of the cycles they closed, in order: exactly
+        what :meth:`push` on each sample would have returned.
+        """
+        t = np.asarray(t, dtype=np.float64)
+        n = t.shape[0] if t.ndim == 1 else -1
+        cycles = self.segmenter.push_many(t, az, theta)
+        self._n_samples += max(n, 0)
+        if slip_ref is None or not cycles:
+            refs = [math.nan] * len(cycles)
+            if slip_ref is not None:
+                self._accumulate(np.asarray(slip_ref, dtype=float))
+            elif cycles:
+                refs[0] = self._ref
+                self._ref = math.nan
+            return self._emit(cycles, refs)
+        slip_ref = np.asarray(slip_ref, dtype=float)
+        if slip_ref.shape != t.shape:
+            raise ValueError(f"slip_ref must have the shape of t {t.shape}, got {slip_ref.shape}")
+        refs = []
+        start = 0
+        for j, cyc in enumerate(cycles):
+            # index of this cycle's closing sample in the chunk (first sample at or after start with t == t_end)
+            hit = np.flatnonzero(t[start:] == cyc.t_end)
+            if hit.size == 0 or j > 0 and cycles[j - 1].t_end == cyc.t_end:
+                refs.append(math.nan)  # closed by the same sample as the previous cycle (skipped cycles)
+                continue
+            end = start + int(hit[0])
+            self._accumulate(slip_ref[start:end])
+            refs.append(self._ref)
+            self._ref = math.nan
+            start = end
+        self._accumulate(slip_ref[start:])
+        return self._emit(cycles, refs)
+
+    def _accumulate(self, refs: np.ndarray) -> None:
+        """Remember the last finite reference of ``refs``."""
+        ok = np.flatnonzero(np.isfinite(refs))
+        if ok.size:
+            self._ref = float(refs[ok[-1]])
+
+    def iter_estimates(self, chunks: Iterable) -> Iterator[Estimate]:
+        """Estimates over an iterable of sample chunks, as they come.
+
+        A chunk is ``(t, az, theta)`` or ``(t, az, theta, slip_ref)`` arrays,
+        or any object with ``t``, ``az``, ``theta`` (and optionally ``slip``)
+        attributes (e.g. :class:`slipest.io.log_csv.LogChunk`,
+        :class:`slipest.model.stream.SampleChunk`).
+        """
+        for ch in chunks:
+            if isinstance(ch, tuple):
+                yield from self.push_many(*ch)
+            else:
+                yield from self.push_many(ch.t, ch.az, ch.theta, getattr(ch, "slip", None))
+
+
+__all__ = ["Estimate", "ESTIMATE_FIELDS", "METHODS", "SlipEstimator"]

@@ -1,0 +1,214 @@
+"""Tests of the recursive estimator (slipest.estimator) through the online API (slipest.online)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from slipest.estimator import BATCH_FIELDS, SoilSlipEstimator
+from slipest.features import cycle_features
+from slipest.model.params import StickSlipParams
+from slipest.model.scenario import Scenario
+from slipest.model.stream import simulate_stream
+from slipest.online import ESTIMATE_FIELDS, SlipEstimator
+from slipest.segmentation import CycleSegmenter
+
+SOIL_A = dict(kS=700.0, phiD=0.2, dphi=0.05)
+SOIL_B = dict(kS=1300.0, phiD=0.3, dphi=0.30)
+N_PER_SOIL = 14
+
+
+def _stream(slips, soils, seed):
+    kS = [s["kS"] for s in soils]
+    phiD = [s["phiD"] for s in soils]
+    phiS = [s["phiD"] + s["dphi"] for s in soils]
+    sc = Scenario.per_cycle(StickSlipParams(), dict(noise_g=0.01, seed=seed), slip=slips, kS=kS, phiS=phiS, phiD=phiD)
+    return simulate_stream(sc)
+
+
+@pytest.fixture(scope="module")
+def slips():
+    rng = np.random.default_rng(11)
+    return np.repeat(rng.uniform(0.1, 0.45, N_PER_SOIL), 2)[: 2 * N_PER_SOIL]
+
+
+@pytest.fixture(scope="module")
+def change_stream(slips):
+    """Soil A for 14 cycles, then soil B for 14, slip changing every 2 cycles."""
+    return _stream(slips, [SOIL_A] * N_PER_SOIL + [SOIL_B] * N_PER_SOIL, seed=5)
+
+
+@pytest.fixture(scope="module")
+def change_estimates(change_stream):
+    s = change_stream
+    return SlipEstimator().push_many(s.t, s.az, s.theta)
+
+
+def _same(a, b) -> bool:
+    """Estimates equal field by field, NaN equal to NaN."""
+    for f in ESTIMATE_FIELDS:
+        x, y = getattr(a, f), getattr(b, f)
+        if isinstance(x, float) and math.isnan(x):
+            if not (isinstance(y, float) and math.isnan(y)):
+                return False
+        elif x != y:
+            return False
+    return True
+
+
+def test_one_estimate_per_cycle_with_std(change_estimates, slips):
+    est = change_estimates
+    assert [e.cycle for e in est] == list(range(len(slips) - 1))  # the last, unclosed cycle is not emitted
+    assert all(e.ok for e in est)
+    for e in est:
+        assert e.slip_std > 0 and e.dphi_std > 0 and e.kS_std > 0 and e.phiS_std > 0
+        assert 0.0 <= e.slip <= 0.55
+
+
+def test_follows_a_soil_change(change_estimates, slips):
+    est = change_estimates
+    a_end = est[N_PER_SOIL - 1]
+    assert abs(a_end.dphi - SOIL_A["dphi"]) < 0.05
+    assert a_end.dphi_std < 0.05
+    assert abs(a_end.kS - SOIL_A["kS"]) < 250
+    # no change announced on soil A once it is learnt, one announced right after the change
+    assert max(e.change_prob for e in est[3:N_PER_SOIL]) < 0.5
+    assert max(e.change_prob for e in est[N_PER_SOIL : N_PER_SOIL + 3]) > 0.5
+    b_end = est[-1]
+    assert abs(b_end.dphi - SOIL_B["dphi"]) < 0.05
+    assert abs(b_end.dphi - SOIL_B["dphi"]) < abs(b_end.dphi - SOIL_A["dphi"])
+    assert abs(b_end.kS - SOIL_B["kS"]) < 250
+    # not confidently wrong after the change: the truth inside 3 std on every cycle of soil B from the 3rd
+    for e in est[N_PER_SOIL + 2 :]:
+        assert abs(e.dphi - SOIL_B["dphi"]) < 3 * e.dphi_std + 0.02
+    err = np.array([e.slip - slips[e.cycle] for e in est[N_PER_SOIL + 4 :]])
+    assert np.sqrt(np.mean(err**2)) < 0.06
+
+
+def test_dphi_uncertain_when_unobservable():
+    # slip 0 with phiS = 0.55 rad: the foot never breaks away (it would for phiS below ~0.47),
+    # the hub barely vibrates (Da 0.015 g): nothing tells dphi
+    s = _stream(np.zeros(8), [dict(kS=1000.0, phiD=0.3, dphi=0.25)] * 8, seed=2)
+    est = SlipEstimator().push_many(s.t, s.az, s.theta)
+    assert len(est) == 7 and all(e.ok for e in est)
+    assert est[-1].dphi_std > 0.07  # the uniform prior over 0-0.35 rad has 0.10
+    assert est[-1].slip < 0.05
+
+
+def test_reference_slip_used_only_when_asked(change_stream):
+    s = change_stream
+    n = 16000 * 4  # ~25 cycles would be slow to compare three times; 25 s of data suffice
+    t, az, th, sl = s.t[:n], s.az[:n], s.theta[:n], s.slip[:n]
+    blind = SlipEstimator().push_many(t, az, th)
+    ignored = SlipEstimator(use_reference=False).push_many(t, az, th, sl)
+    used_est = SlipEstimator(use_reference=True)
+    used = used_est.push_many(t, az, th, sl)
+    assert len(blind) == len(ignored) == len(used) > 5
+    for a, b in zip(blind, ignored):
+        assert (a.slip, a.slip_std, a.dphi, a.dphi_std) == (b.slip, b.slip_std, b.dphi, b.dphi_std)
+        assert not b.used_reference
+        assert b.slip_ref == pytest.approx(sl[np.searchsorted(t, b.t_end) - 1])  # carried along, for --truth
+    assert all(e.used_reference for e in used)
+    assert used_est.counters["reference_used"] == len(used)
+    assert any(abs(a.dphi - b.dphi) > 1e-6 for a, b in zip(blind, used))
+
+
+def test_non_ok_cycles_give_nan_rows_with_the_reason(change_stream):
+    s = change_stream
+    n = 16000 * 4
+    t, az, th = s.t[:n].copy(), s.az[:n].copy(), s.theta[:n].copy()
+    period = 2 * np.pi / 4
+    # a NaN acceleration in the window of cycle 3, a 50 ms hole in the window of cycle 6
+    i3 = int(np.argmax(th > 3 * period + 0.3))
+    az[i3] = np.nan
+    i6 = int(np.argmax(th > 6 * period + 0.3))
+    keep = np.ones(n, dtype=bool)
+    keep[i6 : i6 + 50] = False
+    est_obj = SlipEstimator()
+    est = est_obj.push_many(t[keep], az[keep], th[keep])
+    by_cycle = {e.cycle: e for e in est}
+    assert sorted(by_cycle) == list(range(len(est)))  # nothing dropped
+    assert by_cycle[3].quality == "nan" and by_cycle[6].quality == "gap"
+    for k in (3, 6):
+        e = by_cycle[k]
+        assert not e.ok
+        assert all(math.isnan(getattr(e, f)) for f in ("delta_a", "slip", "slip_std", "dphi", "dphi_std"))
+    assert all(e.ok and math.isfinite(e.slip) for k, e in by_cycle.items() if k not in (3, 6))
+    c = est_obj.counters
+    assert c["cycles_flagged"] == 2 and c["flagged_nan"] == 1 and c["flagged_gap"] == 1
+    assert c["cycles"] == len(est) and c["cycles_ok"] == len(est) - 2
+
+
+def test_push_and_push_many_identical(change_stream):
+    s = change_stream
+    n = 6 * 2493
+    t, az, th, sl = s.t[:n], s.az[:n], s.theta[:n], s.slip[:n]
+    one = SlipEstimator(use_reference=True)
+    got = []
+    for a, b, c, d in zip(t.tolist(), az.tolist(), th.tolist(), sl.tolist()):
+        got += one.push(a, b, c, d)
+    many = SlipEstimator(use_reference=True)
+    chunks = []
+    for k in range(0, n, 3001):  # chunks cutting cycles anywhere
+        chunks += many.push_many(t[k : k + 3001], az[k : k + 3001], th[k : k + 3001], sl[k : k + 3001])
+    assert len(got) == len(chunks) >= 5
+    assert all(_same(a, b) for a, b in zip(got, chunks))
+    assert one.counters == many.counters
+
+
+def test_iterator_and_callback(change_stream):
+    s = change_stream
+    n = 5 * 2493
+    seen = []
+    est = SlipEstimator(on_estimate=seen.append)
+    chunks = [(s.t[k : k + 4000], s.az[k : k + 4000], s.theta[k : k + 4000]) for k in range(0, n, 4000)]
+    out = list(est.iter_estimates(chunks))
+    assert len(out) == len(seen) >= 4 and all(a is b for a, b in zip(out, seen))
+
+
+def test_estimator_batch_equals_sequential(change_stream):
+    s = change_stream
+    n = 8 * 2493
+    feats = np.array([cycle_features(c.theta_phase, c.az, c.t) for c in CycleSegmenter(4).push_many(s.t[:n], s.az[:n], s.theta[:n])])
+    feats[2, 0] = np.nan  # a corrupted row: NaN out, filter untouched
+    seq = SoilSlipEstimator()
+    rows = [seq.update(f) if np.isfinite(f[0]) else None for f in feats]
+    batch = SoilSlipEstimator().update_batch(feats)
+    assert set(batch) == set(BATCH_FIELDS)
+    assert math.isnan(batch["slip"][2])
+    for j, r in enumerate(rows):
+        if r is not None:
+            assert batch["slip"][j] == r.slip and batch["dphi_std"][j] == r.dphi_std
+    with pytest.raises(ValueError, match="non-finite"):
+        SoilSlipEstimator().update(feats[2])
+
+
+def test_known_soil_and_eq515_method(change_stream, slips):
+    s = change_stream
+    n = 6 * 2493
+    soil = dict(kS=SOIL_A["kS"], phiD=SOIL_A["phiD"], dphi=SOIL_A["dphi"])
+    known = SlipEstimator(soil=soil).push_many(s.t[:n], s.az[:n], s.theta[:n])
+    for e in known:
+        assert e.dphi == pytest.approx(SOIL_A["dphi"]) and e.dphi_std == 0.0
+        assert abs(e.slip - slips[e.cycle]) < 4 * e.slip_std + 0.02
+    eq = SlipEstimator(method="eq515", soil=dict(kS=700.0, dphi=0.05)).push_many(s.t[:n], s.az[:n], s.theta[:n])
+    assert len(eq) == len(known) and all(e.ok and math.isfinite(e.slip) for e in eq)
+    with pytest.raises(ValueError, match="kS"):
+        SlipEstimator(method="eq515")
+    with pytest.raises(ValueError, match="use_reference"):
+        SlipEstimator(method="eq515", soil=dict(kS=700.0))
+    with pytest.raises(ValueError, match="method"):
+        SlipEstimator(method="nope")
+
+
+def test_other_leg_speed_is_flagged_not_estimated():
+    # the models know 0.63 rad/s only: a rover driving 30 % faster gets NaN rows flagged "speed"
+    sc = Scenario.per_cycle(StickSlipParams(omega=0.82), dict(noise_g=0.01, seed=1), slip=[0.3] * 4)
+    s = simulate_stream(sc)
+    est_obj = SlipEstimator()
+    est = est_obj.push_many(s.t, s.az, s.theta)
+    assert len(est) == 3
+    assert all(e.quality == "speed" and math.isnan(e.slip) for e in est)
+    assert est_obj.counters["flagged_speed"] == 3
+    with pytest.raises(ValueError):
+        SlipEstimator(speed_tol=0.0)

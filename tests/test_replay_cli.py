@@ -1,0 +1,134 @@
+"""Tests of ``slipest replay`` on small logs made here with the simulator."""
+
+import csv
+import io
+import json
+import math
+
+import numpy as np
+import pytest
+
+from slipest.cli.main import main
+from slipest.cli.replay import COLUMNS
+from slipest.io.log_csv import LogWriter
+from slipest.model.params import StickSlipParams
+from slipest.model.scenario import Scenario
+from slipest.model.stream import simulate_stream
+
+N_CYCLES = 7
+
+
+@pytest.fixture(scope="module")
+def log_path(tmp_path_factory):
+    rng = np.random.default_rng(3)
+    slip = np.repeat(rng.uniform(0.1, 0.45, 4), 2)[:N_CYCLES]
+    sc = Scenario.per_cycle(StickSlipParams(kS=900.0, phiS=0.5, phiD=0.3), dict(noise_g=0.01, seed=4), slip=slip)
+    s = simulate_stream(sc)
+    path = tmp_path_factory.mktemp("logs") / "run.csv"
+    with LogWriter(path, ("t", "az", "theta", "slip"), metadata=sc.metadata()) as w:
+        w.write(s.t, s.az, s.theta, s.slip)
+    return path
+
+
+def _lines(path):
+    return path.read_text().splitlines()
+
+
+def run(args, capsys):
+    rc = main(["replay", *map(str, args)])
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def test_csv_to_stdout_one_row_per_cycle(log_path, capsys):
+    rc, out, err = run([log_path], capsys)
+    assert rc == 0
+    rows = list(csv.DictReader(io.StringIO(out)))
+    assert tuple(rows[0].keys()) == COLUMNS
+    for needed in ("cycle", "t_end", "delta_a", "slip", "slip_std", "dphi", "dphi_std", "quality"):
+        assert needed in COLUMNS
+    # the log starts at theta = -pi/4: a 1-sample "partial" cycle -1, then every whole cycle but the last
+    assert [int(r["cycle"]) for r in rows] == list(range(-1, N_CYCLES - 1))
+    assert rows[0]["quality"] == "partial" and rows[0]["slip"] == "nan"
+    ok = [r for r in rows if r["quality"] == "ok"]
+    assert len(ok) == N_CYCLES - 1
+    for r in ok:
+        assert 0.0 <= float(r["slip"]) <= 0.55 and float(r["slip_std"]) > 0 and float(r["dphi_std"]) > 0
+    # summary on stderr only
+    assert "leg cycles" in err and f"{N_CYCLES - 1} estimated" in err
+    assert "truth" not in err
+
+
+def test_slip_column_ignored_unless_asked(log_path, tmp_path, capsys):
+    o1, o2 = tmp_path / "a.csv", tmp_path / "b.csv"
+    assert run([log_path, "-o", o1], capsys)[0] == 0
+    assert run([log_path, "-o", o2, "--truth"], capsys)[0] == 0
+    r1 = list(csv.DictReader(o1.open()))
+    r2 = list(csv.DictReader(o2.open()))
+    assert [r["slip"] for r in r1] == [r["slip"] for r in r2]  # --truth only compares
+    rc, out, err = run([log_path, "-o", tmp_path / "c.csv", "--use-reference"], capsys)
+    assert rc == 0 and "reference slip used on" in err
+    r3 = list(csv.DictReader((tmp_path / "c.csv").open()))
+    assert all(r["used_reference"] == "1" for r in r3 if r["quality"] == "ok")
+    assert [r["dphi"] for r in r3] != [r["dphi"] for r in r1]
+
+
+def test_jsonl_and_truth_summary(log_path, capsys):
+    rc, out, err = run([log_path, "--format", "jsonl", "--truth"], capsys)
+    assert rc == 0
+    recs = [json.loads(line) for line in out.splitlines()]
+    assert len(recs) == N_CYCLES and list(recs[0].keys()) == list(COLUMNS)
+    assert recs[0]["slip"] is None and recs[0]["quality"] == "partial"  # NaN -> null
+    assert all(isinstance(r["slip"], float) for r in recs[1:])
+    assert "truth: slip RMSE" in err and "95% interval coverage" in err
+    # the summary's RMSE is the RMSE of the written rows against slip_ref
+    e = np.array([r["slip"] - r["slip_ref"] for r in recs[1:]])
+    rmse = float(err.split("truth: slip RMSE ")[1].split(",")[0])
+    assert rmse == pytest.approx(float(np.sqrt(np.mean(e**2))), abs=1e-4)
+    # the metadata give phiS and phiD: dphi is compared too
+    assert "truth: dphi (log metadata 0.2 rad)" in err
+
+
+def test_eq515_method(log_path, capsys):
+    rc, out, err = run([log_path, "--method", "eq515", "--kS", 900, "--phiS", 0.5, "--phiD", 0.3], capsys)
+    assert rc == 0
+    rows = [r for r in csv.DictReader(io.StringIO(out)) if r["quality"] == "ok"]
+    assert rows and all(float(r["dphi"]) == pytest.approx(0.2) and float(r["dphi_std"]) == 0.0 for r in rows)
+    assert "method eq515" in err
+    rc, out, err = run([log_path, "--method", "eq515"], capsys)
+    assert rc == 2 and "kS" in err and out == ""
+
+
+def test_malformed_row_errors_with_line_number(log_path, tmp_path, capsys):
+    lines = _lines(log_path)
+    header = next(i for i, line in enumerate(lines) if line.startswith("t,"))
+    bad_line = header + 1 + 3000  # 1-based line number of the row we break
+    lines[bad_line - 1] = "0.5,abc,0.1,0.2"
+    bad = tmp_path / "bad.csv"
+    bad.write_text("\n".join(lines) + "\n")
+    rc, out, err = run([bad], capsys)
+    assert rc == 2
+    assert f"line {bad_line}" in err and "slipest replay" in err
+    rc, out, err = run([bad, "--skip-bad"], capsys)
+    assert rc == 0
+    assert "1 malformed row(s) skipped" in err and f"line {bad_line}" in err
+    assert len(list(csv.DictReader(io.StringIO(out)))) == N_CYCLES
+
+
+def test_missing_file_and_truth_without_slip_column(tmp_path, capsys):
+    rc, out, err = run([tmp_path / "nope.csv"], capsys)
+    assert rc == 2 and "no such file" in err
+    p = tmp_path / "noslip.csv"
+    t = np.arange(3000) / 1000.0
+    with LogWriter(p, ("t", "az", "theta"), metadata={"nL": 4}) as w:
+        w.write(t, np.full(t.size, 9.81), -math.pi / 4 + 0.63 * t)
+    rc, out, err = run([p, "--truth"], capsys)
+    assert rc == 2 and "slip" in err
+
+
+def test_legs_from_metadata_or_option(log_path, capsys):
+    rc, out, err = run([log_path], capsys)
+    assert "4 legs" in err
+    # the shipped models are for 4 legs: another number is refused, not estimated wrongly
+    rc, out, err = run([log_path, "--legs", 3], capsys)
+    assert rc == 2 and "4-leg" in err and out == ""
