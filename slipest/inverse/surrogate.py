@@ -51,23 +51,7 @@ VARIABLES = ("slip", "kS", "phiD", "dphi")
 #: the first says nothing of slip or soil, the second repeats ``zc_rate``;
 #: ``stick_mean`` was tried and left out: too noisy at 0.01 g to change the
 #: results on the development draws).
-MODEL_FEATURES = (
-    "delta_a",
-    "peak_pos",
-    "peak_neg",
-    "rms",
-    "rms_q1",
-    "rms_q2",
-    "rms_q3",
-    "rms_q4",
-    "onset",
-    "energy_q10",
-    "energy_q50",
-    "energy_q90",
-    "zc_rate",
-    "osc_freq",
-    "rice_freq",
-)
+MODEL_FEATURES = tuple(n for n in FEATURE_NAMES if n not in ("noise", "n_crossings", "stick_mean"))
 #: Default slip grid of the inversions [-]: 0 to 0.55 by 0.01.
 SLIP_NODES = np.round(np.arange(0.0, 0.5501, 0.01), 6)
 

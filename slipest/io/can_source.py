@@ -30,7 +30,7 @@ from slipest.io.can_messages import (
     SlipReferenceMessage,
     encode_slip_estimate,
 )
-from slipest.io.serial_source import SourceBatch
+from slipest.io.source_batch import SourceBatch, drain
 
 __all__ = ["CanSource", "estimate_message"]
 
@@ -109,16 +109,7 @@ class CanSource:
     # -- consumer side ------------------------------------------------------------------
     def get(self, timeout: float = 0.1) -> list[SourceBatch]:
         """Batches that arrived (waits up to ``timeout`` s for the first one)."""
-        out = []
-        try:
-            out.append(self._q.get(timeout=timeout))
-        except queue.Empty:
-            return out
-        while True:
-            try:
-                out.append(self._q.get_nowait())
-            except queue.Empty:
-                return out
+        return drain(self._q, timeout)
 
     def publish(self, wheel: int, estimate) -> bool:
         """Send the SlipEstimate message of one cycle; False when the bus is down (counted)."""

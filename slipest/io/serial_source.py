@@ -22,24 +22,13 @@ from __future__ import annotations
 import queue
 import threading
 import time
-from dataclasses import dataclass
 
 import serial
 
 from slipest.io.serial_frames import FRAME_IMU_SAMPLE, FrameDecoder
+from slipest.io.source_batch import SourceBatch, drain
 
-__all__ = ["SourceBatch", "SerialSource"]
-
-
-@dataclass
-class SourceBatch:
-    """Frames that arrived together.  ``intake`` [s]: host monotonic time of
-    arrival; ``imu``: ``(wheel, seq, t_us, az, theta)`` tuples; ``refs``:
-    ``(wheel, seq, t_us, slip)`` tuples; both in arrival order."""
-
-    intake: float
-    imu: list
-    refs: list
+__all__ = ["SourceBatch", "SerialSource"]  # SourceBatch re-exported from slipest.io.source_batch
 
 
 class SerialSource:
@@ -170,16 +159,7 @@ class SerialSource:
     # -- consumer side -------------------------------------------------------------
     def get(self, timeout: float = 0.1) -> list[SourceBatch]:
         """Batches that arrived (waits up to ``timeout`` s for the first one)."""
-        out = []
-        try:
-            out.append(self._q.get(timeout=timeout))
-        except queue.Empty:
-            return out
-        while True:
-            try:
-                out.append(self._q.get_nowait())
-            except queue.Empty:
-                return out
+        return drain(self._q, timeout)
 
     def notices(self) -> list[str]:
         out = []
