@@ -283,9 +283,10 @@ def test_device_writes_to_a_given_port_with_pyserial(tmp_path):
                         "--report", str(report), "--linger", "0")
     dec = FrameDecoder()
     frames = []
+    expected = math.ceil(2 * math.pi / (4 * 0.63) * 1000)  # one leg cycle at 1 kHz: 2494 frames
     try:
         deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and len(frames) < 2493:
+        while time.monotonic() < deadline and len(frames) < expected:
             ready, _, _ = select.select([master], [], [], 0.2)
             if ready:
                 frames += dec.feed(os.read(master, 65536))
@@ -294,5 +295,5 @@ def test_device_writes_to_a_given_port_with_pyserial(tmp_path):
         proc.stop()
         os.close(master)
         os.close(slave)
-    assert [f.seq for f in frames] == list(range(2494)) and dec.counters()["crc_errors"] == 0
+    assert [f.seq for f in frames] == list(range(expected)) and dec.counters()["crc_errors"] == 0
     assert json.loads(report.read_text())["link"]["type"] == "port"
