@@ -1,0 +1,285 @@
+"""The sim-to-real diagnosis: localisation, gap and verdict logic, prediction, CLI report, end to end."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from slipest.diagnosis import localize
+from slipest.diagnosis.cycles import cut_cycles
+from slipest.diagnosis.fit import Evaluator, FitBudget, Geometry
+from slipest.diagnosis.predict import Grid
+from slipest.diagnosis.rank import (
+    Candidate,
+    Thresholds,
+    gap_of,
+    noise_floor,
+    rank,
+    shrink_of,
+    split_cycles,
+    verdict,
+)
+from slipest.diagnosis.run import diagnose
+from slipest.model.params import StickSlipParams
+from slipest.model.scenario import Scenario
+from slipest.model.stream import simulate_stream
+from slipest.units import G
+
+GRID = Grid(4)
+
+
+def _log(slips, soil=None, effects=(), noise=0.01, seed=3, rate=1000.0):
+    base = StickSlipParams(**(soil or {}))
+    sc = Scenario.per_cycle(base, imu={"rate": rate, "noise_g": noise, "seed": seed}, slip=slips)
+    return simulate_stream(Scenario(cycles=sc.cycles, rate=rate, noise_g=noise, seed=seed, effects=tuple(effects)))
+
+
+def _cycles(s):
+    return cut_cycles(s.t, s.az, s.theta, s.slip, 4)
+
+
+# --- where -------------------------------------------------------------------------------------
+
+
+def test_localisation_finds_a_gap_placed_in_one_window():
+    rng = np.random.default_rng(0)
+    n_cyc, sigma = 12, 0.02
+    resid = rng.normal(0.0, sigma, (n_cyc, GRID.nb))
+    centres = GRID.bin_centres
+    inside = (centres >= 0.2) & (centres < 0.39)  # window 6 of 8: [0.196, 0.393)
+    resid[:, inside] += 0.5  # a systematic 0.5 m/s^2 error there only
+    var = np.full_like(resid, sigma**2)
+    win = localize.by_window(resid, var, GRID)
+    shares = np.array([w["share"] for w in win])
+    assert np.argmax(shares) == 5 and shares[5] > 0.95
+    assert sum(shares) == pytest.approx(1.0)
+    assert win[5]["gap"] == pytest.approx(0.5 * inside.sum() / inside[(centres >= win[5]["from"]) & (centres < win[5]["to"])].size / G, rel=0.05)
+    # and by slip level: only the cycles of slip 0.3 carry the error
+    slips = np.repeat([0.1, 0.3, 0.5], 4)
+    resid2 = rng.normal(0.0, sigma, (n_cyc, GRID.nb))
+    resid2[slips == 0.3] += 0.3
+    lv = localize.by_slip(resid2, var, slips, heldout_levels=(0.3,))
+    assert [x["slip"] for x in lv] == [0.1, 0.3, 0.5]
+    assert lv[1]["share"] > 0.95 and lv[1]["heldout_level"] and not lv[0]["heldout_level"]
+    assert lv[1]["gap"] == pytest.approx(0.3 / G, rel=0.05)
+
+
+def test_feature_localisation_points_at_the_amplitude_not_the_onset():
+    s = _log([0.3, 0.3, 0.3, 0.3], noise=0.005)
+    cs = _cycles(s)
+    y = cs.y
+    pred = y.copy()
+    half = GRID.nb_half
+    pred[:, half:] = 9.81 + 0.7 * (y[:, half:] - 9.81)  # model with 30 % less oscillation, same onset
+    feats = {f["feature"]: f for f in localize.by_feature(y, pred, cs.slip, GRID, 0.63)}
+    assert feats["delta_a"]["mean_diff"] > 0.2  # data Da larger than the model's, in g
+    assert feats["onset"]["share"] < 0.05
+    top = max(feats.values(), key=lambda f: f["share"])
+    assert top["unit"] == "g"
+    assert sum(f["share"] for f in feats.values()) == pytest.approx(1.0)
+
+
+# --- gap, split, verdict -----------------------------------------------------------------------
+
+
+def test_gap_is_the_error_in_excess_of_noise():
+    rng = np.random.default_rng(1)
+    sigma = 0.05
+    noise = rng.normal(0.0, sigma, (40, GRID.nb))
+    var = np.full_like(noise, sigma**2)
+    assert gap_of(noise, var) < 0.1 * sigma / G  # pure noise: gap ~ 0
+    assert gap_of(noise + 0.2, var) == pytest.approx(0.2 / G, rel=0.03)
+    assert shrink_of(0.04, 0.01) == pytest.approx(0.75)
+    assert shrink_of(0.0, 0.01) == 0.0
+
+
+def test_noise_floor_from_repeatability_matches_white_noise():
+    s = _log(np.repeat([0.2, 0.4], 4), noise=0.01)
+    cs = _cycles(s)
+    nf = noise_floor(cs)
+    assert nf.source == "repeatability"
+    assert nf.sample_g == pytest.approx(0.01, rel=0.1)
+    assert nf.repeat_g == pytest.approx(nf.white_bin_g, rel=0.15)
+
+
+def test_split_holds_out_levels_and_cycles():
+    slips = np.repeat(np.round(np.linspace(0.05, 0.5, 10), 3), 5)
+    sp = split_cycles(slips)
+    assert set(sp.train) | set(sp.test) == set(range(50)) and not set(sp.train) & set(sp.test)
+    assert sp.heldout_levels and min(slips) not in sp.heldout_levels and max(slips) not in sp.heldout_levels
+    assert not set(np.round(slips[sp.train], 6)) & set(sp.heldout_levels)  # never fitted
+    assert len(sp.train_levels) <= 6
+    for lv in sp.train_levels:  # some cycles of fitted levels are held out too
+        assert np.any(np.round(slips[sp.test], 6) == lv)
+
+
+def _cand(name, gap, gap_nom, k=2):
+    return Candidate(effect=name, params={}, gap_heldout=gap, shrink=shrink_of(gap_nom, gap), n_params=k)
+
+
+def test_verdict_logic_on_constructed_rankings():
+    th = Thresholds(none_factor=1.5, none_floor_g=0.004, min_shrink=0.5, min_gain_factor=1.0)
+    noise = 0.004  # bin noise [g]; 'none' below 0.006 g
+    # the nominal model explains the data within noise
+    r = rank([_cand("stribeck", 0.001, 0.005)], 0.005)
+    assert verdict(0.005, r, noise, th) == "none"
+    # a clear winner: named, and marked
+    gap_nom = 0.05
+    r = rank([_cand("imu_lowpass", 0.004, gap_nom), _cand("stribeck", 0.03, gap_nom), _cand("angle_offset", 0.045, gap_nom)],
+             gap_nom)
+    assert [c.effect for c in r] == ["imu_lowpass", "stribeck", "angle_offset"]
+    assert verdict(gap_nom, r, noise, th) == "imu_lowpass" and r[0].named and not r[1].named
+    # nothing shrinks the gap enough: unexplained
+    r = rank([_cand("imu_lowpass", 0.03, gap_nom), _cand("stribeck", 0.035, gap_nom)], gap_nom)
+    assert verdict(gap_nom, r, noise, th) == "unexplained" and not any(c.named for c in r)
+    # enough relative shrink but less than one noise level in absolute terms: unexplained
+    r = rank([_cand("imu_lowpass", 0.003, 0.0065)], 0.0065)
+    assert r[0].shrink >= 0.5
+    assert verdict(0.0065, r, noise, th) == "unexplained"
+    # ties within 2 % of the nominal gap: fewer parameters first
+    r = rank([_cand("stribeck", 0.0100, gap_nom, k=3), _cand("angle_offset", 0.0105, gap_nom, k=1)], gap_nom)
+    assert r[0].effect == "angle_offset"
+
+
+# --- prediction matches the simulated stream ------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "effect, values",
+    [
+        (None, {}),
+        ("imu_lowpass", {"cutoff": 6.0, "order": 2}),
+        ("angle_offset", {"offset": 0.15}),
+        ("touchdown_impact", {"amplitude": -12.0, "tau": 0.9, "freq": 11.0}),
+    ],
+)
+def test_prediction_at_the_truth_matches_the_stream_within_noise(effect, values):
+    soil = {"kS": 1100.0, "phiS": 0.6, "phiD": 0.42, "kappa": 0.33}
+    effects = ({"name": effect, **values},) if effect else ()
+    s = _log([0.15, 0.15, 0.4, 0.4, 0.3, 0.3], soil=soil, effects=effects, noise=0.01)
+    cs = _cycles(s)
+    ev = Evaluator(cs, np.arange(len(cs)), effect, Geometry())
+    truth = {"kS": soil["kS"], "phiS": soil["phiS"], "dphi": soil["phiS"] - soil["phiD"], "kappa": soil["kappa"],
+             **values}
+    mse, bias = ev.mse(ev.z_of(truth)[None])
+    nf = noise_floor(cs)
+    excess = math.sqrt(max(mse[0] - np.mean(nf.var_bin), 0.0)) / G
+    assert excess < 0.005  # g: within the prediction's resampling error
+    assert abs(bias[0]) < 0.01
+
+
+# --- CLI and end to end ------------------------------------------------------------------------
+
+
+def _write_log(path, s, meta):
+    from slipest.io.log_csv import LogWriter
+
+    with open(path, "w", newline="") as fh:
+        w = LogWriter(fh, metadata=meta, columns=("t", "az", "theta", "slip"))
+        w.write(t=s.t, az=s.az, theta=s.theta, slip=s.slip)
+        w.flush()
+
+
+def test_cli_writes_the_json_keys(tmp_path, capsys):
+    from slipest.cli.main import main
+
+    s = _log(np.repeat([0.1, 0.25, 0.4], 2), effects=({"name": "imu_saturation", "full_scale": 12.0},))
+    log = tmp_path / "real.csv"
+    _write_log(log, s, {"nL": "4", "MH": "1", "mF": "0.2", "lS": "0.1763", "kS": "999"})
+    out = tmp_path / "report.json"
+    tiny = ["--quick", "--effects", "imu_saturation", "--rank-all", "--no-progress"]
+    rc = main(["diagnose", str(log), "--json", str(out), "--plots", str(tmp_path / "png")] + tiny)
+    assert rc == 0
+    doc = json.loads(out.read_text())
+    for key in ("verdict", "gap_nominal", "where", "ranking"):
+        assert key in doc
+    assert set(doc["where"]) >= {"angle_windows", "features", "slip_levels"}
+    assert doc["ranking"] and set(doc["ranking"][0]) >= {"effect", "params", "gap_heldout", "shrink"}
+    assert doc["ranking"][0]["effect"] == "imu_saturation" and "full_scale" in doc["ranking"][0]["params"]
+    assert doc["verdict"] in ("imu_saturation", "none", "unexplained")
+    printed = capsys.readouterr().out
+    assert "verdict:" in printed and "gap of the nominal model" in printed
+    assert sorted(p.name for p in (tmp_path / "png").iterdir()) == ["gap_by_angle.png", "ranking.png", "waveforms.png"]
+    # a log without the slip column is refused with a clear message
+    bare = tmp_path / "bare.csv"
+    from slipest.io.log_csv import LogWriter
+
+    with open(bare, "w", newline="") as fh:
+        LogWriter(fh, columns=("t", "az", "theta")).write(t=s.t, az=s.az, theta=s.theta)
+    with pytest.raises(SystemExit, match="slip"):
+        main(["diagnose", str(bare), "--no-progress"])
+
+
+def test_end_to_end_names_a_strong_effect():
+    soil = {"kS": 900.0, "phiS": 0.58, "phiD": 0.40, "kappa": 0.32}
+    slips = np.repeat([0.1, 0.2, 0.3, 0.4, 0.5], 2)
+    s = _log(slips, soil=soil, effects=({"name": "angle_offset", "offset": 0.15},), seed=11)
+    cs = _cycles(s)
+    d = diagnose(cs, Geometry(), effects=["angle_offset", "imu_saturation"], budget=FitBudget().scaled(0.5))
+    assert d.verdict == "angle_offset"
+    assert d.ranking[0].effect == "angle_offset"
+    assert d.ranking[0].params["offset"] == pytest.approx(0.15, abs=0.01)
+    assert d.shrink >= 0.7
+
+
+# --- building blocks of the prediction ---------------------------------------------------------
+
+
+def test_butterworth_sections_match_scipy_and_start_steady():
+    from scipy import signal
+
+    from slipest.diagnosis.predict import butter_sections, lowpass_batch
+
+    grid = Grid(4)
+    fs = 0.63 / grid.dpsi
+    rng = np.random.default_rng(2)
+    x = 9.81 + rng.normal(0, 1, (3, 1, 800))
+    for order in (1, 2, 3, 4):
+        y = lowpass_batch(x, grid, 0.63, np.full(3, 7.0), np.full(3, order))
+        b, a = signal.butter(order, 7.0, fs=fs)
+        for r in range(3):
+            ref, _ = signal.lfilter(b, a, x[r, 0], zi=signal.lfilter_zi(b, a) * x[r, 0, 0])
+            np.testing.assert_allclose(y[r, 0], ref, atol=1e-9)
+        assert len(butter_sections(order, 7.0, fs)) == (order + 1) // 2
+
+
+def test_expected_clip_is_the_mean_of_noisy_clipped_samples():
+    from slipest.diagnosis.fit import expected_clip
+
+    rng = np.random.default_rng(3)
+    noise = rng.normal(0.0, 0.2, 400_000)
+    for u in (11.0, 11.8, 12.0, 12.3, 13.0, -12.1):
+        assert float(expected_clip(np.array(u), 12.0, 0.2)) == pytest.approx(np.mean(np.clip(u + noise, -12, 12)),
+                                                                             abs=2e-3)
+    np.testing.assert_array_equal(expected_clip(np.array([11.0, 13.0]), 12.0, 0.0), [11.0, 12.0])
+
+
+def test_impact_train_is_the_sum_over_past_touchdowns():
+    from slipest.diagnosis.predict import impact_batch, psi_time
+    from slipest.model.effects import impact_response
+
+    grid = Grid(4)
+    omega, A, tau, f = 0.63, -9.0, 0.8, 13.0
+    train = impact_batch(grid, omega, [A], [tau], [f])[0]
+    t = psi_time(grid, omega)
+    period = 2 * math.pi / (4 * omega)
+    explicit = sum(impact_response(t - j * period, A, tau, f) for j in range(-40, 2))
+    np.testing.assert_allclose(train, explicit, atol=1e-9)
+
+
+def test_cycles_binning_wrapped_angles_and_first_cycle():
+    s = _log([0.2, 0.3, 0.3, 0.4], noise=0.0)
+    cs = _cycles(s)
+    assert list(cs.k) == [1, 2, 3] and cs.dropped == 1  # the run's first cycle has no history: dropped
+    np.testing.assert_allclose(cs.slip, [0.3, 0.3, 0.4])
+    np.testing.assert_allclose(cs.prev_slip, [0.2, 0.3, 0.3])
+    assert cs.y.shape == (3, GRID.nb) and np.all(cs.count >= 8)
+    np.testing.assert_allclose(cs.omega, 0.63, rtol=1e-3)
+    np.testing.assert_allclose(np.nanmean(cs.speed), 0.63, rtol=1e-6)
+    wrapped = np.mod(s.theta + math.pi, 2 * math.pi) - math.pi
+    cw = cut_cycles(s.t, s.az, wrapped, s.slip, 4)
+    np.testing.assert_allclose(cw.y, cs.y, atol=1e-9)
+    # the rigid half of a noise-free cycle: 1 g minus the small kinematic l w^2 cos(phi) (~0.007 g)
+    rigid = cs.y[:, : GRID.nb_half] / G
+    assert np.all(np.abs(rigid - 1.0) < 0.01)
