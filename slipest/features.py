@@ -135,6 +135,29 @@ def analysis_grid(n_legs: int = 4, n: int = N_GRID) -> np.ndarray:
 
 
 @numba.njit(cache=True)
+def bin_mean_fill(acc, cnt):
+    """In place: bin sums ``acc`` with counts ``cnt`` become bin means, and
+    empty bins are filled by linear interpolation between their neighbours
+    (held flat before the first and after the last filled bin; zeros if no
+    bin has a sample). Shared by the features and the diagnosis's phase grid."""
+    m = acc.shape[0]
+    last = -1
+    for j in range(m):
+        if cnt[j] > 0:
+            acc[j] /= cnt[j]
+            if last < j - 1:  # fill the gap (last, j)
+                for g in range(last + 1, j):
+                    if last < 0:
+                        acc[g] = acc[j]
+                    else:
+                        w = (g - last) / (j - last)
+                        acc[g] = acc[last] * (1.0 - w) + acc[j] * w
+            last = j
+    for g in range(last + 1, m):
+        acc[g] = acc[last] if last >= 0 else 0.0
+
+
+@numba.njit(cache=True)
 def _row_features(phase, a, half, omega, n_grid, out):
     """Features of one cycle. phase [rad] sorted; a [g]; out: one row, written in place."""
     n_raw = phase.size
@@ -169,20 +192,7 @@ def _row_features(phase, a, half, omega, n_grid, out):
                 b = n_grid - 1
             y[b] += a[i]
             cnt[b] += 1.0
-    last = -1
-    for b in range(n_grid):
-        if cnt[b] > 0:
-            y[b] /= cnt[b]
-            if last < b - 1:  # fill the gap (last, b)
-                for g in range(last + 1, b):
-                    if last < 0:
-                        y[g] = y[b]
-                    else:
-                        w = (g - last) / (b - last)
-                        y[g] = y[last] * (1.0 - w) + y[b] * w
-            last = b
-    for g in range(last + 1, n_grid):
-        y[g] = y[last]
+    bin_mean_fill(y, cnt)
     dphase = half / n_grid
     # ---- relative to the stick level
     n_stick = max(2, int(round(STICK_FRACTION * n_grid)))

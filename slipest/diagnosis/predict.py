@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from slipest.features import bin_mean_fill
 from slipest.model import kernel as K
 
 #: Fine-grid bins per half cycle (``pi/nL`` of leg angle) [-].
@@ -62,20 +63,7 @@ def _stance_fine_kernel(params, dt, max_steps, m, out, status):
                 j = m - 1
             acc[j] += rec[i, 1]
             cnt[j] += 1.0
-        last = -1
-        for j in range(m):
-            if cnt[j] > 0:
-                acc[j] /= cnt[j]
-                if last < j - 1:
-                    for g in range(last + 1, j):
-                        if last < 0:
-                            acc[g] = acc[j]
-                        else:
-                            w = (g - last) / (j - last)
-                            acc[g] = acc[last] * (1.0 - w) + acc[j] * w
-                last = j
-        for g in range(last + 1, m):
-            acc[g] = acc[last] if last >= 0 else 0.0
+        bin_mean_fill(acc, cnt)
         for j in range(m):
             out[b, j] = acc[j]
 
