@@ -118,12 +118,8 @@ class CanSource:
         return ok
 
     def notices(self) -> list[str]:
-        out = []
-        while True:
-            try:
-                out.append(self.events.get_nowait())
-            except queue.Empty:
-                return out
+        """Events waiting now (never blocks)."""
+        return drain(self.events, 0)
 
     def counters(self) -> dict:
         with self._lock:

@@ -162,12 +162,8 @@ class SerialSource:
         return drain(self._q, timeout)
 
     def notices(self) -> list[str]:
-        out = []
-        while True:
-            try:
-                out.append(self.events.get_nowait())
-            except queue.Empty:
-                return out
+        """Events waiting now (never blocks)."""
+        return drain(self.events, 0)
 
     def counters(self) -> dict:
         c = self.decoder.counters()

@@ -17,8 +17,8 @@ class SourceBatch:
     refs: list
 
 
-def drain(q: queue.Queue, timeout: float = 0.1) -> list[SourceBatch]:
-    """Every batch waiting in ``q`` (waits up to ``timeout`` s for the first one)."""
+def drain(q: queue.Queue, timeout: float = 0.1) -> list:
+    """Every item waiting in ``q`` (waits up to ``timeout`` s for the first one; 0: never blocks)."""
     out = []
     try:
         out.append(q.get(timeout=timeout))
