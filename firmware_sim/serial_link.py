@@ -106,17 +106,20 @@ class PtyLink(_BaseLink):
     """A pseudo-terminal pair created by the device; the receiver opens :attr:`path`."""
 
     def __init__(self, link_path: str | None = None, settle: float = 0.5, stall_timeout: float = 2.0,
-                 announce: Callable[[str], None] | None = None):
+                 announce: Callable[[str], None] | None = None, drain_timeout: float = 0.5):
         super().__init__(announce)
         self.link_path = link_path
         self.settle = settle
         self.stall_timeout = stall_timeout
+        self.drain_timeout = drain_timeout
         self.master: int | None = None
         self.path: str | None = None
         self._peer_since: float | None = None
         self._poll = None
         #: bytes written but never read, discarded by disconnections (should stay 0)
         self.bytes_discarded_at_disconnect = 0
+        #: frames whose end was among those bytes
+        self.frames_discarded_at_disconnect = 0
         #: disconnections where the unread bytes could not be probed
         self.drains_unverified = 0
 
@@ -191,36 +194,82 @@ class PtyLink(_BaseLink):
             self.master = None
             self._peer_since = None
 
-    def _unread_bytes(self) -> int:
-        """Bytes written to the master that the reader has not read yet (FIONREAD on the slave)."""
+    def _open_slave(self) -> int | None:
+        """A descriptor of our own on the slave (to look at the reader's queue), or None."""
         if self.master is None or self.path is None:
-            return 0
+            return None
         try:
-            fd = os.open(self.path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+            return os.open(self.path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
         except OSError:
-            return -1
-        try:
-            return struct.unpack("i", fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"))[0]
-        finally:
-            os.close(fd)
+            return None
 
-    def _drain_then_close(self, timeout: float = 0.5) -> None:
+    @staticmethod
+    def _pending(fd: int) -> int:
+        """Bytes written to the master that the reader has not read yet, in flight included.
+
+        A write to a pty master returns once its bytes are in the slave's flip
+        buffer; a kernel worker (``flush_to_ldisc``) moves them to the line
+        discipline later (under load, milliseconds later), and FIONREAD counts
+        only what the line discipline holds.  ``poll()`` on the slave first
+        waits for that worker when the line discipline is empty (``n_tty_poll``
+        calls ``tty_buffer_flush_work``), so bytes in flight are not taken for
+        bytes read.
+        """
+        p = select.poll()
+        p.register(fd, select.POLLIN)
+        p.poll(0)
+        return struct.unpack("i", fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"))[0]
+
+    @staticmethod
+    def _take_unread(fd: int) -> tuple[int, int]:
+        """Read what the reader left (it dies with the master): (bytes, frames).
+
+        A frame counts as discarded when its delimiter is (the device writes
+        whole frames, so whatever the reader left ends on one).  A
+        non-blocking read waits for the bytes in flight before saying EAGAIN.
+        """
+        nbytes = nframes = 0
+        while True:
+            try:
+                data = os.read(fd, 65536)
+            except (BlockingIOError, OSError):
+                break
+            if not data:
+                break
+            nbytes += len(data)
+            nframes += data.count(0)
+        return nbytes, nframes
+
+    def _drain_then_close(self) -> None:
         """Let the reader take what was already sent, then close the master.
 
         A frame the device counted as sent must not vanish with the master: the
-        injected disconnection starts after the last sent byte. Whatever the
-        reader still leaves unread after ``timeout`` s is counted in
-        :attr:`bytes_discarded_at_disconnect` and reported.
+        injected disconnection starts after the last sent byte.  Whatever the
+        reader still leaves unread after :attr:`drain_timeout` s is taken out and counted
+        in :attr:`bytes_discarded_at_disconnect` and
+        :attr:`frames_discarded_at_disconnect`, and reported.
         """
-        deadline = time.monotonic() + timeout
-        unread = self._unread_bytes()
-        while unread and time.monotonic() < deadline:
-            time.sleep(0.002)
-            unread = self._unread_bytes()
-        if unread < 0:
+        if self.master is None:
+            return
+        fd = self._open_slave()
+        if fd is None:
             self.drains_unverified += 1  # could not look at the reader's queue
-        else:
-            self.bytes_discarded_at_disconnect += unread
+            self._close_master()
+            return
+        try:
+            deadline = time.monotonic() + self.drain_timeout
+            unread = self._pending(fd)
+            while unread and time.monotonic() < deadline:
+                time.sleep(0.002)
+                unread = self._pending(fd)
+            if unread:
+                nbytes, nframes = self._take_unread(fd)
+                self.bytes_discarded_at_disconnect += nbytes
+                self.frames_discarded_at_disconnect += nframes
+        except OSError:
+            self.drains_unverified += 1
+        finally:
+            os.close(fd)
         self._close_master()
 
     def disconnect(self) -> None:
@@ -248,6 +297,7 @@ class PtyLink(_BaseLink):
             "path": self.path,
             "link": self.link_path,
             "bytes_discarded_at_disconnect": self.bytes_discarded_at_disconnect,
+            "frames_discarded_at_disconnect": self.frames_discarded_at_disconnect,
             "drains_unverified": self.drains_unverified,
         }
 

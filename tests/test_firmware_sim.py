@@ -18,6 +18,7 @@ import serial
 from firmware_sim.can_link import CanLink
 from firmware_sim.device import KIND_IMU, Device, ScenarioFeed, wrap_angle
 from firmware_sim.faults import FaultInjector, FaultPlan, parse_fault
+from firmware_sim.serial_link import PtyLink
 from slipest.io.bus_args import BusConfig
 from slipest.io.can_messages import CanDecoder, ImuMessage, SlipReferenceMessage
 from slipest.io.serial_frames import FrameDecoder, ImuSample, SlipReference, encode_imu_samples
@@ -108,6 +109,71 @@ def test_corrupted_frames_are_exactly_the_ones_the_decoder_rejects():
 def _trailing(mask) -> int:
     """Lost frames at the end: no later frame reveals them as a gap."""
     return int(np.argmax(~mask[::-1])) if mask[-1] else 0
+
+
+# --- PtyLink in this process ---------------------------------------------------------------------
+
+
+def _imu_burst(n: int, seq0: int = 0) -> bytes:
+    seq = seq0 + np.arange(n)
+    return encode_imu_samples(0, seq, seq * 1000, np.full(n, 9.81), np.zeros(n))
+
+
+def _pty_reader(path: str, got: bytearray, opened: threading.Event) -> None:
+    """Read the slave until the master goes away."""
+    fd = os.open(path, os.O_RDWR | os.O_NOCTTY)
+    opened.set()
+    try:
+        while True:
+            try:
+                data = os.read(fd, 65536)
+            except OSError:  # EIO: the master is closed
+                return
+            if not data:
+                return
+            got += data
+    finally:
+        os.close(fd)
+
+
+def test_pty_disconnect_waits_for_the_bytes_still_in_flight_to_the_reader():
+    # A write to a pty master returns before a kernel worker has moved the bytes to the
+    # reader's queue (FIONREAD does not see them yet): under load the drain took that for
+    # "all read" and the master's close destroyed the last burst.  Many short rounds: the
+    # race lost a burst in ~1% of rounds on an idle machine, more under load.
+    link = PtyLink(settle=0.0)
+    burst = _imu_burst(12)
+    try:
+        for r in range(200):
+            link.open()
+            got, opened = bytearray(), threading.Event()
+            th = threading.Thread(target=_pty_reader, args=(link.path, got, opened), daemon=True)
+            th.start()
+            assert opened.wait(5)
+            link.send([burst])
+            link.disconnect()
+            th.join(5)
+            assert bytes(got) == burst, f"round {r}: {len(got)} of {len(burst)} bytes read"
+    finally:
+        link.close()
+    assert link.bytes_discarded_at_disconnect == 0 and link.frames_discarded_at_disconnect == 0
+    assert link.drains_unverified == 0
+
+
+def test_pty_disconnect_counts_what_a_stalled_reader_never_read():
+    # more than the reader's line discipline holds (4 KB): the rest waits in the flip buffer
+    link = PtyLink(settle=0.0, drain_timeout=0.05)
+    link.open()
+    fd = os.open(link.path, os.O_RDWR | os.O_NOCTTY)  # a reader that never reads
+    try:
+        link.send([_imu_burst(400)])
+        link.disconnect()
+    finally:
+        os.close(fd)
+        link.close()
+    assert link.bytes_discarded_at_disconnect == 400 * 24
+    assert link.frames_discarded_at_disconnect == 400
+    assert link.describe()["frames_discarded_at_disconnect"] == 400
 
 
 # --- over a real pseudo-terminal, device in its own process ---------------------------------------
