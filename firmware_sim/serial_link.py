@@ -283,7 +283,9 @@ class PtyLink(_BaseLink):
         self.open()
 
     def close(self) -> None:
-        self._close_master()
+        """End of the run: the reader gets what was sent (or it is counted as discarded), then the
+        pair and the link path go."""
+        self._drain_then_close()
         if self.link_path:
             try:
                 if os.path.islink(self.link_path):
