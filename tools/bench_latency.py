@@ -19,7 +19,10 @@ Pushes a simulated log (``tools/bench_replay.py``'s 10-minute log, or
    * ``online``: the rest of ``push`` (speed check, ``Estimate``).
 
 Figures are milliseconds (median, p90, p99, max) with the load average of
-the machine at the time (other processes' load shows in the tail).
+the machine at the time (other processes' load shows in the tail); the
+closing pushes' CPU time (``time.thread_time``) leaves out the time the
+process waited for the CPU, an estimate of the figures on a quiet machine
+(the caches are still shared).
 
     python tools/bench_latency.py               # ~30 s
     python tools/bench_latency.py --quick       # the first 2.5 min of the log only
@@ -56,17 +59,20 @@ def _stats(x) -> str:
 
 
 def bare(t, az, th, n_legs):
-    """Durations [s] of the closing pushes, and mean duration of a push [s] (closing ones included)."""
+    """Wall and CPU (this thread's) durations [s] of the closing pushes, and mean wall duration of a push [s]."""
     SlipEstimator(n_legs=n_legs).push_many(t[:20000], az[:20000], th[:20000])  # warm up
     est = SlipEstimator(n_legs=n_legs)
     push = est.push
-    closing = []
+    cpu = time.thread_time
+    closing, closing_cpu = [], []
     t0 = clock()
     for a, b, c in zip(t, az, th):
         s = clock()
+        sc = cpu()
         if push(a, b, c):
+            closing_cpu.append(cpu() - sc)
             closing.append(clock() - s)
-    return np.array(closing), (clock() - t0) / len(t)
+    return np.array(closing), np.array(closing_cpu), (clock() - t0) / len(t)
 
 
 class _Timer:
@@ -147,11 +153,12 @@ def main(argv=None) -> int:
     n_legs = d.metadata.n_legs or 4
     for rnd in range(args.repeat):
         load0 = os.getloadavg()[0]
-        closing, per = bare(t, az, th, n_legs)
+        closing, closing_cpu, per = bare(t, az, th, n_legs)
         stages = instrumented(t, az, th, n_legs)
         load1 = os.getloadavg()[0]
         print(f"round {rnd + 1}: {n} samples, load average {load0:.2f} -> {load1:.2f} on {os.cpu_count()} CPUs")
         print(f"  {'closing push (bare)':22s} {_stats(closing)} ms   ({closing.size} cycles; {per * 1e6:.2f} us/push)")
+        print(f"  {'  its CPU time':22s} {_stats(closing_cpu)} ms   (without the time other processes had the CPU)")
         for name, x in stages.items():
             print(f"  {name:22s} {_stats(x)} ms")
     return 0

@@ -41,6 +41,37 @@ def fexp(d):
     return x
 
 
+@numba.njit(cache=True)
+def whiten_into(row, cols, log_offset, proj, scale, fw):
+    """A full feature row in the tables' coordinates (the compiled :meth:`~slipest.inverse.surrogate.SurrogateInverse.whiten`).
+
+    ``row``: ``(F,)`` float64 feature row (order of ``FEATURE_NAMES``, units
+    of ``FEATURE_UNITS``); ``cols``: ``(d,)`` int64 columns of the modelled
+    features; ``log_offset``: ``(d,)`` float64, where finite the feature is
+    modelled as ``log(max(f + offset, 1e-12))``; ``proj``: ``(d, n)``
+    float64 whitening and projection; ``scale``: float32 factor. Writes
+    ``fw[:n] = float32(observed @ proj) * scale`` and zeros in the padding
+    of ``fw`` (float32). Returns False, ``fw`` untouched, when a modelled
+    feature is not finite.
+    """
+    d, n = proj.shape
+    y = np.empty(d)
+    for i in range(d):
+        v = row[cols[i]]
+        if not np.isfinite(v):
+            return False
+        off = log_offset[i]
+        y[i] = math.log(max(v + off, 1e-12)) if np.isfinite(off) else v
+    for j in range(n):
+        acc = 0.0
+        for i in range(d):
+            acc += y[i] * proj[i, j]
+        fw[j] = np.float32(acc) * scale
+    for j in range(n, fw.size):
+        fw[j] = np.float32(0.0)
+    return True
+
+
 @numba.njit(cache=True, fastmath=True)
 def grid_loglik(tc, fw, lp, node_width, dmat, lc, scratch):
     """Cell log-likelihoods with the slip marginalised over the table's slip nodes.
@@ -236,3 +267,13 @@ def weighted_moments(w, xs, q, out):
             acc += w[s] * d * d
         out[2 * i] = m
         out[2 * i + 1] = math.sqrt(max(acc, 0.0) + q[i])
+
+
+@numba.njit(cache=True)
+def touch(a):
+    """Read one value per 64-byte cache line of the 1-D array ``a`` (brings it into the CPU caches); returns their sum."""
+    step = max(1, 64 // a.itemsize)
+    acc = 0.0
+    for i in range(0, a.size, step):
+        acc += a[i]
+    return acc

@@ -428,6 +428,13 @@ class SurrogateInverse(SlipInverse):
             self._table_c = np.ascontiguousarray(self.table.transpose(2, 1, 0))
         return self._table_c
 
+    @property
+    def projection(self) -> np.ndarray:
+        """``(d, n_dims)``: the modelled features (:meth:`FeatureSurrogate.observe`) times this are the
+        coordinates of :attr:`table` (whitened, projected on the ``n_dims`` most informative directions)."""
+        self.table  # built with the table
+        return self._proj
+
     def whiten(self, features) -> np.ndarray:
         """A full feature row in the coordinates of :attr:`table` (float32, padded)."""
         table = self.table
