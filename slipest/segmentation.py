@@ -132,6 +132,7 @@ def _window_checks(t, az, ph, has_pre, pre_t, pre_ph, has_post, post_t, post_ph,
         pos = np.empty(m - 1)
         npos = 0
         pmax = 0.0
+        pmin = np.inf
         jump = False
         for i in range(1, m):
             d = ts[i] - ts[i - 1]
@@ -140,15 +141,22 @@ def _window_checks(t, az, ph, has_pre, pre_t, pre_ph, has_post, post_t, post_ph,
                 npos += 1
                 if d > pmax:
                     pmax = d
+                if d < pmin:
+                    pmin = d
             else:
                 bits |= _F_TIME
             if abs(ps[i] - ps[i - 1]) > max_dtheta:
                 jump = True
-        lim = max_gap
-        if math.isnan(lim) and npos:
-            lim = gap_factor * np.median(pos[:npos])
-        if jump or (npos and not math.isnan(lim) and pmax > lim):
+        if jump:
             bits |= _F_GAP
+        elif npos:
+            if not math.isnan(max_gap):
+                if pmax > max_gap:
+                    bits |= _F_GAP
+            # adaptive: gap_factor times the median step; no step above gap_factor times the
+            # smallest (the usual even sampling) decides it without the median
+            elif pmax > gap_factor * pmin and pmax > gap_factor * np.median(pos[:npos]):
+                bits |= _F_GAP
         # stopped: from a sample, theta's running maximum takes more than stop_time to rise by stop_dtheta
         thr = np.empty(m)
         run = -np.inf
