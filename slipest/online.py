@@ -181,9 +181,10 @@ class SlipEstimator:
         # over read-only arrays: numba compiles those separately)
         ph = np.linspace(0.0, math.pi / self.n_legs, 64)
         az = np.full(ph.size, 9.81)
-        for arr in (ph, az):
+        tt = ph / 0.63
+        for arr in (ph, az, tt):
             arr.flags.writeable = False
-        cycle_features(ph, az, ph / 0.63, n_legs=self.n_legs)
+        cycle_features(ph, az, tt, n_legs=self.n_legs)
 
     def _check_legs(self) -> None:
         """The shipped models were made for one wheel-leg geometry: refuse another number of legs."""
@@ -271,7 +272,7 @@ class SlipEstimator:
             f = cycle_features(ph, cyc.az, tt, n_legs=self.n_legs)
         except ValueError:
             return self._flagged(cyc, "features", ref)
-        if not np.all(np.isfinite(f)):
+        if not all(map(math.isfinite, f.tolist())):  # (numpy's reductions cost more on 18 values)
             return self._flagged(cyc, "features", ref)
         da = float(f[INDEX["delta_a"]])
         use = self.use_reference and math.isfinite(ref)
