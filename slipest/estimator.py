@@ -37,7 +37,9 @@ point-mass (discrete) Bayes filter (the update of
 :func:`filterpy.discrete_bayes.update`, written out and compiled with the
 rest of the cycle: filterpy's own normalisation sums in Python and alone
 cost 0.3 ms a cycle); slip is a new unknown every cycle, marginalised on a
-grid of slip nodes. Per cycle (:func:`_cycle_step`, about 0.4-0.6 ms):
+grid of slip nodes. Per cycle (:func:`_cycle_step`, compiled, on the kernels of
+:mod:`slipest.inverse.grid_kernels`: about 0.15 ms with its tables in the CPU
+caches, 0.3-0.45 ms from memory, hence :meth:`SoilSlipEstimator.prefetch`):
 
 1. *predict*: the soil may have changed: with probability ``hazard`` the
    soil is redrawn from the prior (mixing with it keeps every cell
@@ -80,17 +82,17 @@ import numpy as np
 
 from slipest.features import FEATURE_NAMES, INDEX
 from slipest.inverse.base import Soil
-from slipest.inverse.surrogate import (
-    SLIP_NODES,
-    FeatureSurrogate,
-    SoilGrid,
-    SurrogateInverse,
+from slipest.inverse.grid_kernels import (
     grid_loglik,
-    load_inverse_model,
-    moments,
-    slip_marginal,
-    slip_prior,
+    marginal_from_rows,
+    marginal_from_cells,
+    node_moments,
+    select_cells,
+    touch,
+    weighted_moments,
+    whiten_into,
 )
+from slipest.inverse.surrogate import SLIP_NODES, FeatureSurrogate, SoilGrid, SurrogateInverse, load_inverse_model, slip_prior
 
 #: The soil update sums the slip likelihood over every SOIL_STRIDE-th slip node (0.03 apart: a
 #: Riemann sum of a Gaussian of standard deviation sigma is exact to ~1 % down to a step of 2 sigma,
@@ -110,45 +112,31 @@ DEFAULT_SOIL_TEMPER = 0.3
 DEFAULT_SLIP_TEMPER = 0.6
 
 
-@numba.njit(cache=True)
-def _weighted_moments(w, xs):
-    """Means and variances of the rows of ``xs`` under the weights ``w`` (summing to 1)."""
-    n = xs.shape[0]
-    m = np.zeros(n)
-    v = np.zeros(n)
-    for i in range(n):
-        acc = 0.0
-        for s in range(w.size):
-            acc += w[s] * xs[i, s]
-        m[i] = acc
-        acc = 0.0
-        for s in range(w.size):
-            d = xs[i, s] - m[i]
-            acc += w[s] * d * d
-        v[i] = acc
-    return m, v
-
-
 @numba.njit(cache=True, fastmath=True)
-def _cycle_step(w, prior, hazard, coarse, table, fw, lp_coarse, lp_slip, node_width, soil_temper, cutoff,
-                ref_k, ref_a, skip, dmat, lc):
-    """One cycle of the grid filter, in place on the weights ``w``; returns (slip weights, change_prob).
+def _cycle_step(w, prior, hazard, soil_temper, cutoff, node_width, coarse, rest, fw, lp_coarse, lp_rest, coarse_idx,
+                rest_idx, nodes, node_quant, ref_k, ref_a, skip, summary_x, summary_q, dmat, f32s, f64s, sel, ps, out):
+    """One cycle of the grid filter, in place on the weights ``w`` (the soil posterior over the cells).
 
     predict (hazard mixing with the prior), cell likelihoods on the coarse
-    slip nodes, slip marginal on every node, run-length-1 change
+    slip nodes (``coarse``: columnar ``(D, Kc, S)`` table of the nodes
+    ``coarse_idx`` of ``nodes``), slip marginal on every node (the coarse
+    nodes' values reused, the others' computed on the cells that matter
+    from ``rest``, the per-cell padded table of the nodes ``rest_idx``, see
+    :func:`~slipest.inverse.grid_kernels.marginal_from_cells`), run-length-1 change
     probability, tempered update (by the reference slip's likelihood when
     ``ref_k >= 0``: between coarse nodes ``ref_k`` and ``ref_k + 1`` at
-    fraction ``ref_a``), or no update when ``skip``.
+    fraction ``ref_a``), or no update when ``skip``; then the moments.
+
+    Writes ``out``: slip [-], its std [-], change probability [-], then
+    mean and std of each row of ``summary_x`` under the weights (std with
+    ``summary_q`` added to the variance). Scratch: ``dmat`` ``(Kc, S)`` and
+    ``f32s`` ``(4, S)`` float32, ``f64s`` ``(3, S)`` float64, ``sel``
+    ``(S,)`` int64, ``ps`` ``(K,)`` float64.
     """
     S = w.size
-    old = w.copy()
-    for s in range(S):
-        w[s] = (1.0 - hazard) * w[s] + hazard * prior[s]
-    grid_loglik(coarse, fw, lp_coarse, dmat, lc, node_width)
-    logw = np.empty(S)
-    for s in range(S):
-        logw[s] = math.log(w[s]) if w[s] > 0.0 else -np.inf
-    ps = slip_marginal(logw, table, fw, lp_slip, lc, cutoff)
+    lc = f64s[0]  # cell log-likelihoods
+    lw = f64s[1]  # log weights after predict, then the update's log-likelihoods
+    grid_loglik(coarse, fw, lp_coarse, node_width, dmat, lc, f32s[:2])
     top = -np.inf
     for s in range(S):
         if lc[s] > top:
@@ -157,31 +145,45 @@ def _cycle_step(w, prior, hazard, coarse, table, fw, lp_coarse, lp_slip, node_wi
     p_new = 0.0
     for s in range(S):
         e = math.exp(lc[s] - top)
-        p_stay += old[s] * e
+        p_stay += w[s] * e
         p_new += prior[s] * e
+        v = (1.0 - hazard) * w[s] + hazard * prior[s]
+        w[s] = v
+        lw[s] = math.log(v) if v > 0.0 else -1e300
     p_stay *= 1.0 - hazard
     p_new *= hazard
     change = p_new / (p_stay + p_new) if (p_stay + p_new) > 0.0 else 1.0
-    if skip:
-        return ps, change
-    ll = np.empty(S)
-    if ref_k >= 0:
+    base = f32s[2]
+    n = select_cells(lw, lc, cutoff, sel, base)
+    ps[:] = 0.0
+    marginal_from_rows(dmat, sel, base, n, coarse_idx, ps)
+    Kp = rest.shape[2]
+    marginal_from_cells(rest, fw, lp_rest, sel, base, n, rest_idx, ps, f64s[2, :Kp], f32s[3, :Kp])
+    out[0], out[1] = node_moments(ps, nodes, node_quant)
+    out[2] = change
+    if not skip:
+        ll = lw  # reused: the log weights are not needed any more
+        if ref_k >= 0:
+            l0 = lp_coarse[ref_k]
+            l1 = lp_coarse[ref_k + 1]
+            r0 = dmat[ref_k]
+            r1 = dmat[ref_k + 1]
+            for s in range(S):
+                ll[s] = (1.0 - ref_a) * (r0[s] - l0) + ref_a * (r1[s] - l1)
+        else:
+            for s in range(S):
+                ll[s] = lc[s]
+        mx = -np.inf
         for s in range(S):
-            ll[s] = (1.0 - ref_a) * (dmat[s, ref_k] - lp_coarse[ref_k]) + ref_a * (dmat[s, ref_k + 1] - lp_coarse[ref_k + 1])
-    else:
+            if ll[s] > mx:
+                mx = ll[s]
+        tot = 0.0
         for s in range(S):
-            ll[s] = lc[s]
-    mx = -np.inf
-    for s in range(S):
-        if ll[s] > mx:
-            mx = ll[s]
-    tot = 0.0
-    for s in range(S):
-        w[s] *= math.exp(soil_temper * (ll[s] - mx))
-        tot += w[s]
-    for s in range(S):
-        w[s] /= tot
-    return ps, change
+            w[s] *= math.exp(soil_temper * (ll[s] - mx))
+            tot += w[s]
+        for s in range(S):
+            w[s] /= tot
+    weighted_moments(w, summary_x, summary_q, out[3:])
 
 
 @dataclass(frozen=True)
@@ -263,30 +265,48 @@ class SoilSlipEstimator:
         self._no_onset = math.pi / n_legs - 1e-9  # onset at or past this: no break-away detected
         self._scale = math.sqrt(self.slip_temper)
         if not self._known:
-            self._table = np.ascontiguousarray(self.inverse.table_t * np.float32(self._scale))  # (S, D, K)
-            self._coarse = np.ascontiguousarray(self._table[:, :, ::SOIL_STRIDE])
-            self._coarse_nodes = SLIP_NODES[::SOIL_STRIDE]
-            S, _, K = self._coarse.shape
-            self._dmat = np.empty((S, K), dtype=np.float32)
-            self._lc = np.empty(S)
-            self._lp_slip = slip_prior(SLIP_NODES).astype(np.float32)
-            self._lp_coarse = np.ascontiguousarray(self._lp_slip[::SOIL_STRIDE])
+            table = self.inverse.table_t * np.float32(self._scale)  # (S, D, K)
+            S, D, K = table.shape
+            # the soil update's slip nodes (every SOIL_STRIDE-th) and the rest, as columnar (D, K, S) tables
+            self._coarse_idx = np.arange(0, K, SOIL_STRIDE)
+            self._rest_idx = np.setdiff1d(np.arange(K), self._coarse_idx)
+            lp_slip = slip_prior(SLIP_NODES).astype(np.float32)
+            self._coarse = np.ascontiguousarray(table[:, :, self._coarse_idx].transpose(1, 2, 0))  # (D, Kc, S)
+            self._lp_coarse = np.ascontiguousarray(lp_slip[self._coarse_idx])
+            # (S, D, Kr) padded to a multiple of 8 nodes, the padding's log prior far below anything real
+            kr = self._rest_idx.size
+            self._rest = np.zeros((S, D, -(-kr // 8) * 8), dtype=np.float32)
+            self._rest[:, :, :kr] = table[:, :, self._rest_idx]
+            self._lp_rest = np.full(self._rest.shape[2], -1e30, dtype=np.float32)
+            self._lp_rest[:kr] = lp_slip[self._rest_idx]
+            self._coarse_nodes = SLIP_NODES[self._coarse_idx]
+            self._node_quant = (SLIP_NODES[1] - SLIP_NODES[0]) ** 2 / 12.0  # variance of a uniform within one node
             cells = self.grid.cells()
-            self._cells = cells
-            self._dphi_cells = cells[:, 1] - cells[:, 2]
             prior = np.exp(self.inverse.soil_logprior(soil))
             self._prior = prior / prior.sum()
-            self._quant = self.grid.steps() ** 2 / 12.0  # variance of a uniform within one cell
+            q = self.grid.steps() ** 2 / 12.0  # variance of a uniform within one cell
             # dphi, kS, phiS, phiD of every cell, and the within-cell variance added to each
-            self._summary_x = np.ascontiguousarray(np.column_stack([self._dphi_cells, cells[:, 0], cells[:, 1], cells[:, 2]]).T)
-            q = self._quant
+            self._summary_x = np.ascontiguousarray(np.column_stack([cells[:, 1] - cells[:, 2], cells[:, 0], cells[:, 1], cells[:, 2]]).T)
             self._summary_q = np.array([q[2], q[0], q[1] + q[2], q[1]])
+            # scratch of the compiled step (no allocation per cycle)
+            self._dmat = np.empty((self._coarse_idx.size, S), dtype=np.float32)
+            self._f32s = np.empty((4, S), dtype=np.float32)
+            self._f64s = np.empty((3, S))
+            self._sel = np.empty(S, dtype=np.int64)
+            self._ps = np.empty(K)
+            self._out = np.empty(3 + 2 * self._summary_x.shape[0])
+            # the compiled whitening: modelled columns, log offsets, projection, scale; its output
+            self._whiten_args = (np.ascontiguousarray(self._cols, dtype=np.int64), np.asarray(self.model.log_offset, dtype=float),
+                                 np.ascontiguousarray(self.inverse.projection), np.float32(self._scale))
+            self._fw = np.zeros(D, dtype=np.float32)
+            whiten_into(np.zeros(len(FEATURE_NAMES)), *self._whiten_args, self._fw)
+            # what a cycle step reads or writes, flat (prefetch)
+            self._hot = [a.reshape(-1) for a in (self._coarse, self._rest, self._dmat, self._f32s, self._f64s, self._prior,
+                                                  self._summary_x, self._sel)]
+            for a in self._hot:
+                touch(a)
             # run the compiled kernels once now (loading them costs ~15 ms: not on the first cycle's latency)
-            w0 = self._prior.copy()
-            _cycle_step(w0, self._prior, 0.0, self._coarse, self._table, np.zeros(self._table.shape[1], np.float32),
-                        self._lp_coarse, self._lp_slip, float(SOIL_STRIDE), self.soil_temper, SLIP_CUTOFF, -1, 0.0,
-                        False, self._dmat, self._lc)
-            _weighted_moments(w0, self._summary_x)
+            self._step(self._prior.copy(), np.zeros(D, np.float32), 0.0, -1, 0.0, False)
         self.reset()
 
     # ------------------------------------------------------------------
@@ -304,10 +324,23 @@ class SoilSlipEstimator:
         """Posterior weights over the grid cells (``grid.cells()`` order); None with the soil known."""
         return None if self._known else self._w.copy()
 
-    def _soil_summary(self):
-        m, v = _weighted_moments(self._w, self._summary_x)
-        sd = np.sqrt(np.maximum(v, 0.0) + self._summary_q)
-        return [m[0], sd[0], m[1], sd[1], m[2], sd[2], m[3], sd[3]]
+    def prefetch(self) -> None:
+        """Bring what the next cycle step reads (about 5 MB: the grid tables, the weights, scratch) into the
+        CPU caches. Call it shortly before a cycle closes (:class:`~slipest.online.SlipEstimator` does, one
+        live sample at a time): the step then waits less on memory. Takes about 0.1-0.2 ms; changes nothing else."""
+        if self._known:
+            return
+        touch(self._w)
+        for a in self._hot:
+            touch(a)
+
+    def _step(self, w, fw, hazard: float, ref_k: int, ref_a: float, skip: bool) -> np.ndarray:
+        """Run the compiled cycle step on the weights ``w`` (in place); returns the ``out`` row of :func:`_cycle_step`."""
+        _cycle_step(w, self._prior, hazard, self.soil_temper, SLIP_CUTOFF, float(SOIL_STRIDE), self._coarse, self._rest,
+                    fw, self._lp_coarse, self._lp_rest, self._coarse_idx, self._rest_idx, SLIP_NODES, self._node_quant,
+                    ref_k, ref_a, skip, self._summary_x, self._summary_q, self._dmat, self._f32s, self._f64s,
+                    self._sel, self._ps, self._out)
+        return self._out
 
     def update(self, features, slip_ref: float | None = None) -> CycleEstimate:
         """One cycle: its full feature row (order of ``FEATURE_NAMES``) and, optionally, a reference slip [-].
@@ -319,7 +352,11 @@ class SoilSlipEstimator:
         f = np.asarray(features, dtype=float)
         if f.shape != (len(FEATURE_NAMES),):
             raise ValueError(f"a feature row has {len(FEATURE_NAMES)} values, got shape {f.shape}")
-        if not np.all(np.isfinite(f[self._cols])):
+        if self._known:
+            finite = np.all(np.isfinite(f[self._cols]))
+        else:
+            finite = whiten_into(f, *self._whiten_args, self._fw)  # the table coordinates, into self._fw
+        if not finite:
             raise ValueError("non-finite features: this cycle cannot be estimated")
         use_ref = self.use_reference and slip_ref is not None and math.isfinite(slip_ref)
         self.n_cycles += 1
@@ -337,12 +374,8 @@ class SoilSlipEstimator:
         else:
             ref_k, ref_a = -1, 0.0
         skip = bool(f[_ONSET] >= self._no_onset)  # no break-away: no soil update (module docstring)
-        fw = self.inverse.whiten(f) * np.float32(self._scale)
-        ps, change = _cycle_step(self._w, self._prior, self.hazard, self._coarse, self._table, fw, self._lp_coarse,
-                                 self._lp_slip, float(SOIL_STRIDE), self.soil_temper, SLIP_CUTOFF, ref_k, ref_a, skip,
-                                 self._dmat, self._lc)
-        slip, sd = moments(ps, SLIP_NODES)
-        sd = math.sqrt(sd * sd + (SLIP_NODES[1] - SLIP_NODES[0]) ** 2 / 12.0)
+        slip, sd, change, dm, ds, km, ks, pm, pss, dm2, ds2 = self._step(self._w, self._fw, self.hazard, ref_k, ref_a,
+                                                                          skip).tolist()
         used = use_ref and not skip
         if skip:
             self.n_no_breakaway += 1
@@ -350,7 +383,6 @@ class SoilSlipEstimator:
             self.n_updates += 1
         if used:
             self.n_reference += 1
-        dm, ds, km, ks, pm, pss, dm2, ds2 = self._soil_summary()
         return CycleEstimate(slip, sd, dm, ds, km, ks, pm, pss, dm2, ds2, change, used)
 
     def update_batch(self, features_2d, slip_ref=None) -> dict:

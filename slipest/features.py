@@ -358,11 +358,50 @@ def _phase_status(phase, half, min_samples):
     return 0, first, last
 
 
+@numba.njit(cache=True)
+def _cycle_kernel(phase, az, t, omega, half, min_samples, n_grid, scale, out):
+    """:func:`cycle_features`'s checks and features in one call: ``out`` one row (``az * scale`` in g).
+
+    ``omega`` [rad/s]: NaN takes it from ``t`` [s] and ``phase`` [rad].
+    Returns ``(code, first, last, omega)``: 0 done; 1-4 as
+    :func:`_phase_status`; 5 ``t`` does not increase; 6 the phase does not
+    advance; 7 ``omega`` not finite and positive; 8 ``az`` not finite.
+    """
+    first = np.nan
+    last = np.nan
+    if math.isnan(omega):
+        span = t[t.size - 1] - t[0] if t.size else 0.0
+        if not (np.isfinite(span) and span > 0):
+            return 5, first, last, omega
+        omega = (phase[phase.size - 1] - phase[0]) / span
+        if not omega > 0:
+            return 6, first, last, omega
+    code, first, last = _phase_status(phase, half, min_samples)
+    if code != 0:
+        return code, first, last, omega
+    if not (np.isfinite(omega) and omega > 0):
+        return 7, first, last, omega
+    row = np.empty(phase.size)
+    for i in range(phase.size):
+        v = az[i]
+        if not np.isfinite(v):
+            return 8, first, last, omega
+        row[i] = v * scale
+    _row_features(phase, row, half, omega, n_grid, out)
+    return 0, first, last, omega
+
+
 def _check_phase(phase: np.ndarray, n_legs: int) -> None:
     if phase.ndim != 1:
         raise ValueError(f"phase must be 1-D, got shape {phase.shape}")
     half = math.pi / n_legs
     code, first, last = _phase_status(phase, half, MIN_SAMPLES)
+    _raise_phase(code, first, last, n_legs)
+
+
+def _raise_phase(code: int, first: float, last: float, n_legs: int) -> None:
+    """The ValueError of a :func:`_phase_status` code (none for 0)."""
+    half = math.pi / n_legs
     if code == 1:
         raise ValueError("phase has non-finite values")
     if code == 2:
@@ -425,21 +464,28 @@ def cycle_features(theta_phase, az, t=None, n_legs: int = 4, omega: float | None
     az = np.asarray(az, dtype=np.float64)
     if az.shape != theta_phase.shape:
         raise ValueError(f"theta_phase and az must have the same shape, got {theta_phase.shape} and {az.shape}")
-    if omega is None:
-        if t is None:
-            omega = DEFAULT_OMEGA
-        else:
-            t = np.asarray(t, dtype=float)
-            if t.shape != theta_phase.shape:
-                raise ValueError(f"t and theta_phase must have the same shape, got {t.shape} and {theta_phase.shape}")
-            span = float(t[-1] - t[0]) if t.size else 0.0
-            if not (math.isfinite(span) and span > 0):
-                raise ValueError("t must increase over the window")
-            omega = float(theta_phase[-1] - theta_phase[0]) / span
-            if not omega > 0:
-                raise ValueError("the leg phase does not advance over the window")
-    row = features_batch(theta_phase, az[None, :], n_legs=n_legs, omega=omega)[0]
-    if math.isnan(row[0]):
+    if omega is None and t is not None:
+        t = np.asarray(t, dtype=np.float64)
+        if t.shape != theta_phase.shape:
+            raise ValueError(f"t and theta_phase must have the same shape, got {t.shape} and {theta_phase.shape}")
+        om = math.nan  # from t
+    else:
+        om = float(DEFAULT_OMEGA if omega is None else omega)
+        t = theta_phase  # not read
+    if theta_phase.ndim != 1:
+        raise ValueError(f"phase must be 1-D, got shape {theta_phase.shape}")
+    # one compiled call (checks and features): the same as features_batch on one row, without its overhead
+    # on a cycle's closing sample
+    row = np.empty(_N_FEATURES)
+    code, first, last, om = _cycle_kernel(theta_phase, az, t, om, math.pi / n_legs, MIN_SAMPLES, N_GRID, 1.0 / G, row)
+    if code == 5:
+        raise ValueError("t must increase over the window")
+    if code == 6:
+        raise ValueError("the leg phase does not advance over the window")
+    _raise_phase(code, first, last, n_legs)
+    if code == 7:
+        raise ValueError(f"omega={om} rad/s must be positive")
+    if code == 8:
         raise ValueError("az has non-finite values")
     return row
 

@@ -71,6 +71,7 @@ import math
 from array import array
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from .units import G
@@ -96,6 +97,92 @@ _TWO_PI = 2.0 * math.pi
 _INIT, _FORWARD, _REVERSE = 0, 1, 2
 _CLOSE_EPS = 1e-6  # rad; pre-check margin before the exact floor() test
 _BLOCK = 16384  # samples per vectorised step in push_many
+# bits of _window_checks' result
+_F_TIME, _F_GAP, _F_STOPPED, _F_NAN, _F_SATURATED = 1, 2, 4, 8, 16
+
+
+@numba.njit(cache=True)
+def _window_checks(t, az, ph, has_pre, pre_t, pre_ph, has_post, post_t, post_ph, max_gap, gap_factor, max_dtheta,
+                   stop_dtheta, stop_time, full_scale, clip_values):
+    """The sample checks of a closed window, one pass each (the cycle-close cost), as bits ``_F_*``.
+
+    ``t`` [s], ``az`` [m/s^2], ``ph`` [rad]: the window's samples (at least
+    one); the span checked for time order, gaps and stops is the window plus
+    its neighbours ``(pre_t, pre_ph)`` and ``(post_t, post_ph)`` when
+    ``has_pre`` / ``has_post``. ``max_gap`` [s]: NaN adapts it
+    (``gap_factor`` times the median positive time step of the span).
+    ``max_dtheta``, ``stop_dtheta`` [rad], ``stop_time`` [s], ``full_scale``
+    [m/s^2], ``clip_values`` [m/s^2]: see :class:`CycleSegmenter`.
+    """
+    n = t.size
+    a0 = 1 if has_pre else 0
+    m = n + a0 + (1 if has_post else 0)
+    ts = np.empty(m)
+    ps = np.empty(m)
+    ts[a0:a0 + n] = t
+    ps[a0:a0 + n] = ph
+    if has_pre:
+        ts[0] = pre_t
+        ps[0] = pre_ph
+    if has_post:
+        ts[m - 1] = post_t
+        ps[m - 1] = post_ph
+    bits = 0
+    if m >= 2:
+        pos = np.empty(m - 1)
+        npos = 0
+        pmax = 0.0
+        pmin = np.inf
+        jump = False
+        for i in range(1, m):
+            d = ts[i] - ts[i - 1]
+            if d > 0:
+                pos[npos] = d
+                npos += 1
+                if d > pmax:
+                    pmax = d
+                if d < pmin:
+                    pmin = d
+            else:
+                bits |= _F_TIME
+            if abs(ps[i] - ps[i - 1]) > max_dtheta:
+                jump = True
+        if jump:
+            bits |= _F_GAP
+        elif npos:
+            if not math.isnan(max_gap):
+                if pmax > max_gap:
+                    bits |= _F_GAP
+            # adaptive: gap_factor times the median step; no step above gap_factor times the
+            # smallest (the usual even sampling) decides it without the median
+            elif pmax > gap_factor * pmin and pmax > gap_factor * np.median(pos[:npos]):
+                bits |= _F_GAP
+        # stopped: from a sample, theta's running maximum takes more than stop_time to rise by stop_dtheta
+        thr = np.empty(m)
+        run = -np.inf
+        for i in range(m):
+            if ps[i] > run:
+                run = ps[i]
+            thr[i] = run
+        jj = 0
+        for i in range(m):
+            v = thr[i] + stop_dtheta
+            while jj < m and thr[jj] < v:  # first jj with thr[jj] >= v
+                jj += 1
+            if ts[jj - 1] - ts[i] > stop_time:
+                bits |= _F_STOPPED
+                break
+    for i in range(n):
+        a = az[i]
+        if math.isnan(a):
+            bits |= _F_NAN
+        elif abs(a) >= full_scale:
+            bits |= _F_SATURATED
+        else:
+            for c in clip_values:
+                if a == c:
+                    bits |= _F_SATURATED
+    return bits
 
 
 @dataclass(frozen=True, eq=False)
@@ -253,6 +340,10 @@ class CycleSegmenter:
         self._whi = _TWO_PI + self.wrap_tol
         self._unwrap = theta_wrap == "auto"
         self.reset()
+        # load the compiled window checks now, not on the first cycle's close
+        one = np.zeros(1)
+        _window_checks(one, one, one, False, 0.0, 0.0, False, 0.0, 0.0, math.nan, self.gap_factor, self.max_dtheta,
+                       self.stop_dtheta, self.stop_time, self.full_scale, self.clip_values)
 
     # ------------------------------------------------------------------
     def reset(self) -> None:
@@ -387,44 +478,19 @@ class CycleSegmenter:
             flags.append("partial")
         if not self._overflow:
             if n:
-                ts = t
-                ps = ph
-                if self._has_pre or self._has_post:
-                    a0 = 1 if self._has_pre else 0
-                    m = n + a0 + (1 if self._has_post else 0)
-                    ts = np.empty(m)
-                    ps = np.empty(m)
-                    ts[a0 : a0 + n] = t
-                    ps[a0 : a0 + n] = ph
-                    if a0:
-                        ts[0] = self._pre_t
-                        ps[0] = self._pre_ph
-                    if self._has_post:
-                        ts[-1] = self._post_t
-                        ps[-1] = self._post_ph
-                if ts.size >= 2:
-                    dts = np.diff(ts)
-                    if (dts <= 0).any():
-                        flags.append("time")
-                    pos = dts[dts > 0]
-                    max_gap = self.max_gap
-                    if max_gap is None and pos.size:
-                        max_gap = self.gap_factor * float(np.median(pos))
-                    gap = (max_gap is not None and pos.size and float(pos.max()) > max_gap) or bool(
-                        (np.abs(np.diff(ps)) > self.max_dtheta).any()
-                    )
-                    if gap:
-                        flags.append("gap")
-                    thr = np.maximum.accumulate(ps)
-                    j = np.searchsorted(thr, thr + self.stop_dtheta, side="left") - 1
-                    if ((ts[j] - ts) > self.stop_time).any():
-                        flags.append("stopped")
-                if self._nanflag or np.isnan(az).any():
+                bits = _window_checks(t, az, ph, self._has_pre, self._pre_t, self._pre_ph, self._has_post, self._post_t,
+                                      self._post_ph, math.nan if self.max_gap is None else self.max_gap,
+                                      self.gap_factor, self.max_dtheta, self.stop_dtheta, self.stop_time,
+                                      self.full_scale, self.clip_values)
+                if bits & _F_TIME:
+                    flags.append("time")
+                if bits & _F_GAP:
+                    flags.append("gap")
+                if bits & _F_STOPPED:
+                    flags.append("stopped")
+                if self._nanflag or bits & _F_NAN:
                     flags.append("nan")
-                aaz = np.abs(az)
-                if (aaz >= self.full_scale).any() or (
-                    self.clip_values.size and np.isin(az, self.clip_values).any()
-                ):
+                if bits & _F_SATURATED:
                     flags.append("saturated")
             else:
                 if not partial and reason is None:

@@ -1,5 +1,6 @@
 """Tests of the recursive estimator (slipest.estimator) through the online API (slipest.online)."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -156,6 +157,23 @@ def test_push_and_push_many_identical(change_stream):
     assert one.counters == many.counters
 
 
+def test_push_prefetches_shortly_before_each_close(change_stream):
+    """push() warms the estimator's tables once a cycle, shortly before the close (no effect on the estimates:
+    test_push_and_push_many_identical)."""
+    s = change_stream
+    n = 6 * 2493
+    est = SlipEstimator()
+    calls, closes = [], []
+    est.filter.prefetch = lambda: calls.append(t_now)
+    for t_now, a, b in zip(s.t[:n].tolist(), s.az[:n].tolist(), s.theta[:n].tolist()):
+        for e in est.push(t_now, a, b):
+            closes.append(e.t_end)
+    # once after every close (the stream may end before the next one comes)
+    assert len(closes) >= 5 and len(calls) in (len(closes) - 1, len(closes))
+    lead = np.array(closes[1:]) - np.array(calls[: len(closes) - 1])
+    assert np.all((lead > 0) & (lead < 0.05)), lead
+
+
 def test_iterator_and_callback(change_stream):
     s = change_stream
     n = 5 * 2493
@@ -181,6 +199,30 @@ def test_estimator_batch_equals_sequential(change_stream):
             assert batch["slip"][j] == r.slip and batch["dphi_std"][j] == r.dphi_std
     with pytest.raises(ValueError, match="non-finite"):
         SoilSlipEstimator().update(feats[2])
+
+
+def test_compiled_whitening_equals_the_inverse(change_stream):
+    """The estimator's compiled whitening gives SurrogateInverse.whiten's coordinates (times the slip tempering)."""
+    from slipest.inverse.grid_kernels import whiten_into
+
+    s = change_stream
+    n = 4 * 2493
+    feats = [cycle_features(c.theta_phase, c.az, c.t) for c in CycleSegmenter(4).push_many(s.t[:n], s.az[:n], s.theta[:n])]
+    rng = np.random.default_rng(3)
+    rows = feats + [f * rng.uniform(0.5, 1.5, f.size) for f in feats]
+    shipped = SoilSlipEstimator().model
+    logged = dataclasses.replace(shipped, log_offset=np.where(np.arange(len(shipped.features)) < 3, 0.01, np.nan))
+    for model in (shipped, logged):  # the second models some features by their log
+        est = SoilSlipEstimator(model=model)
+        for f in rows:
+            fw = np.full(est.inverse.table.shape[2], np.nan, dtype=np.float32)
+            assert whiten_into(f, *est._whiten_args, fw)
+            want = est.inverse.whiten(f) * np.float32(est._scale)
+            np.testing.assert_allclose(fw, want, rtol=2e-7, atol=1e-6)
+        bad = feats[0].copy()
+        bad[est._cols[0]] = np.nan
+        fw = np.zeros(est.inverse.table.shape[2], dtype=np.float32)
+        assert not whiten_into(bad, *est._whiten_args, fw)
 
 
 def test_known_soil_and_eq515_method(change_stream, slips):

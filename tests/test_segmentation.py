@@ -700,3 +700,62 @@ def test_push_is_fast_enough():
         push(a, b, c)
     per_sample = (time.process_time() - t0) / len(tl)
     assert per_sample < 10e-6, per_sample
+
+
+# ---------------------------------------------------------------------------
+# the compiled window checks against a plain numpy statement of the rules
+# ---------------------------------------------------------------------------
+
+
+def _numpy_window_flags(t, az, ph, pre, post, max_gap, gap_factor, max_dtheta, stop_dtheta, stop_time, full_scale, clip):
+    ts = np.concatenate([[pre[0]] if pre else [], t, [post[0]] if post else []])
+    ps = np.concatenate([[pre[1]] if pre else [], ph, [post[1]] if post else []])
+    flags = set()
+    if ts.size >= 2:
+        dts = np.diff(ts)
+        if (dts <= 0).any():
+            flags.add("time")
+        pos = dts[dts > 0]
+        if max_gap is None and pos.size:
+            max_gap = gap_factor * float(np.median(pos))
+        if (max_gap is not None and pos.size and pos.max() > max_gap) or (np.abs(np.diff(ps)) > max_dtheta).any():
+            flags.add("gap")
+        thr = np.maximum.accumulate(ps)
+        j = np.searchsorted(thr, thr + stop_dtheta, side="left") - 1
+        if ((ts[j] - ts) > stop_time).any():
+            flags.add("stopped")
+    if np.isnan(az).any():
+        flags.add("nan")
+    if (np.abs(az) >= full_scale).any() or (len(clip) and np.isin(az, clip).any()):
+        flags.add("saturated")
+    return flags
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    n=st.integers(1, 60),
+    seed=st.integers(0, 2**32 - 1),
+    pre=st.booleans(),
+    post=st.booleans(),
+    given_gap=st.booleans(),
+)
+def test_window_checks_match_the_rules(n, seed, pre, post, given_gap):
+    from slipest.segmentation import _F_GAP, _F_NAN, _F_SATURATED, _F_STOPPED, _F_TIME, _window_checks
+
+    rng = np.random.default_rng(seed)
+    p_fault = rng.choice([0.0, 0.02, 0.3])  # clean windows, rare faults, many
+    dt = np.where(rng.random(n + 2) < p_fault, rng.choice([0.0, -0.0005, 0.004, 0.02, 0.6], size=n + 2), 0.001)
+    tt = np.cumsum(dt)
+    dth = np.where(rng.random(n + 2) < p_fault, rng.choice([0.0, -0.002, 0.01, 0.2], size=n + 2), 0.00063)
+    th = np.cumsum(dth)
+    az = rng.normal(9.81, 3.0, n)
+    clip = np.array([12.5]) if rng.random() < 0.5 else np.empty(0)
+    for _ in range(rng.integers(0, 3)):
+        az[rng.integers(0, n)] = rng.choice([np.nan, 200.0, -200.0, 12.5])
+    t, ph = tt[1 : n + 1], th[1 : n + 1]
+    args = (0.01 if given_gap else None, 5.0, 0.08, 0.01, 0.5, 16 * G, clip)
+    want = _numpy_window_flags(t, az, ph, (tt[0], th[0]) if pre else None, (tt[-1], th[-1]) if post else None, *args)
+    bits = _window_checks(t, az, ph, pre, tt[0], th[0], post, tt[-1], th[-1], math.nan if args[0] is None else args[0],
+                          *args[1:])
+    names = {_F_TIME: "time", _F_GAP: "gap", _F_STOPPED: "stopped", _F_NAN: "nan", _F_SATURATED: "saturated"}
+    assert {name for bit, name in names.items() if bits & bit} == want

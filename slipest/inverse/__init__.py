@@ -7,6 +7,8 @@
 * :mod:`slipest.inverse.surrogate`: the multi-feature inverse (a surrogate of the feature
   vector as a function of slip and soil, inverted by Bayes; works with the soil unknown),
   package data ``slipest/data/inverse_model.json`` from ``tools/train_inverse.py``;
+* :mod:`slipest.inverse.grid_kernels`: its compiled soil-grid kernels (cell likelihoods, slip
+  marginal, whitening), shared with the recursive estimator;
 * :mod:`slipest.inverse.simdata`: simulated feature rows for training and checks.
 
 The recursive estimator over cycles is :mod:`slipest.estimator`; the API a rover

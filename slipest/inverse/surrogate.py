@@ -37,11 +37,11 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-import numba
 import numpy as np
 
 from slipest.features import FEATURE_NAMES
 from slipest.inverse.base import SlipInverse, Soil
+from slipest.inverse.grid_kernels import grid_loglik, marginal_from_rows, select_cells
 
 #: Version of the inverse model file format.
 FORMAT_VERSION = 1
@@ -330,84 +330,7 @@ class SoilGrid:
         return np.array([np.ptp(v) / max(v.size - 1, 1) for v in (self.kS, self.phiD, self.dphi)])
 
 
-# ---------------------------------------------------------------------- compiled kernels
-
-
-@numba.njit(cache=True, fastmath=True, inline="always")
-def _fexp(d):
-    """``exp(d)`` for ``d <= 0`` as ``(1 + d/1024)^1024`` (float32, vectorisable).
-
-    Relative error about ``d^2 / 2048``: below 1.2 % for ``d > -5``; the
-    log-sums it enters are dominated by terms near 0 and move by < 0.01
-    (measured 0.002) nats. ``d`` is clamped at -60.
-    """
-    x = np.float32(1.0) + max(d, np.float32(-60.0)) * np.float32(1.0 / 1024.0)
-    for _ in range(10):
-        x = x * x
-    return x
-
-
-@numba.njit(cache=True, fastmath=True)
-def grid_loglik(table_t, fw, lp_slip, dmat, lc, node_width):
-    """Cell likelihoods with the slip marginalised over the table's slip nodes.
-
-    ``table_t``: ``(S, D, K)`` float32 (cells, coordinates, slip nodes).
-    ``dmat[s, k] = -|fw - table_t[s, :, k]|^2 / 2 + lp_slip[k]`` (float32) and
-    ``lc[s] = log(node_width * sum_k exp(dmat[s, k]))``, a Riemann sum of the
-    likelihood over slip (exp by :func:`_fexp`).
-    """
-    S, D, K = table_t.shape
-    acc = np.empty(K, dtype=np.float32)
-    for s in range(S):
-        for k in range(K):
-            acc[k] = np.float32(0.0)
-        for j in range(D):
-            fj = fw[j]
-            for k in range(K):
-                e = table_t[s, j, k] - fj
-                acc[k] += e * e
-        m = np.float32(-np.inf)
-        for k in range(K):
-            v = np.float32(-0.5) * acc[k] + lp_slip[k]
-            dmat[s, k] = v
-            m = max(m, v)
-        tot = np.float32(0.0)
-        for k in range(K):
-            tot += _fexp(dmat[s, k] - m)
-        lc[s] = m + math.log(tot * node_width)
-
-
-@numba.njit(cache=True, fastmath=True)
-def slip_marginal(logw, table_t, fw, lp_slip, lc, cutoff):
-    """Slip posterior over all nodes, soil marginalised: ``p(k) ~ sum_s exp(logw[s] + d(s, k))``.
-
-    ``table_t``: ``(S, D, K)``; ``d(s, k) = -|fw - table_t[s, :, k]|^2 / 2 + lp_slip[k]``.
-    Only the cells whose joint weight ``logw + lc`` is within ``cutoff`` of
-    the largest are visited (the others hold less than ``exp(-cutoff)`` of
-    the mass each).
-    """
-    S, D, K = table_t.shape
-    top = -np.inf
-    for s in range(S):
-        v = logw[s] + lc[s]
-        if v > top:
-            top = v
-    ps = np.zeros(K)
-    acc = np.empty(K, dtype=np.float32)
-    for s in range(S):
-        if logw[s] + lc[s] < top - cutoff:
-            continue
-        base = np.float32(logw[s] - top)
-        for k in range(K):
-            acc[k] = np.float32(0.0)
-        for j in range(D):
-            fj = fw[j]
-            for k in range(K):
-                e = table_t[s, j, k] - fj
-                acc[k] += e * e
-        for k in range(K):
-            ps[k] += _fexp(base - np.float32(0.5) * acc[k] + lp_slip[k])
-    return ps
+# ---------------------------------------------------------------------- slip nodes
 
 
 def slip_prior(nodes, hi: float = 0.5, tail: float = 4.0) -> np.ndarray:
@@ -493,10 +416,24 @@ class SurrogateInverse(SlipInverse):
 
     @property
     def table_t(self) -> np.ndarray:
-        """:attr:`table` as ``(S, D, K)`` (contiguous), the layout of the compiled kernels."""
+        """:attr:`table` as ``(S, D, K)`` (contiguous)."""
         if getattr(self, "_table_t", None) is None:
             self._table_t = np.ascontiguousarray(self.table.transpose(0, 2, 1))
         return self._table_t
+
+    @property
+    def table_c(self) -> np.ndarray:
+        """:attr:`table` as ``(D, K, S)`` (contiguous), the columnar layout of :mod:`slipest.inverse.grid_kernels`."""
+        if getattr(self, "_table_c", None) is None:
+            self._table_c = np.ascontiguousarray(self.table.transpose(2, 1, 0))
+        return self._table_c
+
+    @property
+    def projection(self) -> np.ndarray:
+        """``(d, n_dims)``: the modelled features (:meth:`FeatureSurrogate.observe`) times this are the
+        coordinates of :attr:`table` (whitened, projected on the ``n_dims`` most informative directions)."""
+        self.table  # built with the table
+        return self._proj
 
     def whiten(self, features) -> np.ndarray:
         """A full feature row in the coordinates of :attr:`table` (float32, padded)."""
@@ -541,13 +478,16 @@ class SurrogateInverse(SlipInverse):
             return math.nan, math.nan
         if soil is not None and soil.complete:
             return self.slip_known_soil(f, soil.kS, soil.phiS, soil.phiD)
-        table_t = self.table_t
-        S, _, K = table_t.shape
-        dmat = np.empty((S, K), dtype=np.float32)
+        table_c = self.table_c
+        _, K, S = table_c.shape
+        dmat = np.empty((K, S), dtype=np.float32)
         lc = np.empty(S)
-        fw = self.whiten(f)
         lp = slip_prior(SLIP_NODES).astype(np.float32)
-        grid_loglik(table_t, fw, lp, dmat, lc, 1.0)
-        ps = slip_marginal(self.soil_logprior(soil), table_t, fw, lp, lc, 20.0)
+        grid_loglik(table_c, self.whiten(f), lp, 1.0, dmat, lc, np.empty((2, S), dtype=np.float32))
+        sel = np.empty(S, dtype=np.int64)
+        base = np.empty(S, dtype=np.float32)
+        n = select_cells(self.soil_logprior(soil), lc, 20.0, sel, base)
+        ps = np.zeros(K)
+        marginal_from_rows(dmat, sel, base, n, np.arange(K), ps)
         m, s = moments(ps, SLIP_NODES)
         return m, math.sqrt(s * s + 0.01**2 / 12)

@@ -1,0 +1,168 @@
+#!/usr/bin/env python3
+"""Where the time of a cycle's closing sample goes: a per-stage breakdown of ``SlipEstimator.push``.
+
+Pushes a simulated log (``tools/bench_replay.py``'s 10-minute log, or
+``--log``) one sample at a time, twice in this process:
+
+1. bare, as ``tools/bench_replay.py`` item 3 does: the duration of every
+   ``push`` that closes a cycle (the headline figure), and of the other
+   pushes (microseconds per sample);
+2. instrumented: the stages of each closing push timed separately, by
+   wrapping them (each wrapper adds about 0.1-0.3 us):
+
+   * ``segmenter``: ``CycleSegmenter.push`` on the closing sample (cycle
+     close, window checks, ``LegCycle``);
+   * ``features``: ``cycle_features`` of the closed window;
+   * ``estimator``: ``SoilSlipEstimator.update``, split into its compiled
+     ``kernel`` (the cycle step) and the ``python`` rest (whitening, moments,
+     soil summary, result object);
+   * ``online``: the rest of ``push`` (speed check, ``Estimate``).
+
+Figures are milliseconds (median, p90, p99, max) with the load average of
+the machine at the time (other processes' load shows in the tail); the
+closing pushes' CPU time (``time.thread_time``) leaves out the time the
+process waited for the CPU, an estimate of the figures on a quiet machine
+(the caches are still shared).
+
+    python tools/bench_latency.py               # ~30 s
+    python tools/bench_latency.py --quick       # the first 2.5 min of the log only
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+import slipest.estimator as estimator_mod
+import slipest.online as online_mod
+from slipest.io.log_csv import LogReader
+from slipest.online import SlipEstimator
+
+clock = time.perf_counter
+
+#: Compiled functions called by ``SoilSlipEstimator.update`` that make up its kernel time.
+KERNELS = ("_cycle_step",)
+
+
+def _stats(x) -> str:
+    x = np.asarray(x) * 1e3
+    if x.size == 0:
+        return "-"
+    return (f"median {np.median(x):.3f}  p90 {np.percentile(x, 90):.3f}  p99 {np.percentile(x, 99):.3f}  "
+            f"max {x.max():.3f}")
+
+
+def bare(t, az, th, n_legs):
+    """Wall and CPU (this thread's) durations [s] of the closing pushes, and mean wall duration of a push [s]."""
+    SlipEstimator(n_legs=n_legs).push_many(t[:20000], az[:20000], th[:20000])  # warm up
+    est = SlipEstimator(n_legs=n_legs)
+    push = est.push
+    cpu = time.thread_time
+    closing, closing_cpu = [], []
+    t0 = clock()
+    for a, b, c in zip(t, az, th):
+        s = clock()
+        sc = cpu()
+        if push(a, b, c):
+            closing_cpu.append(cpu() - sc)
+            closing.append(clock() - s)
+    return np.array(closing), np.array(closing_cpu), (clock() - t0) / len(t)
+
+
+class _Timer:
+    """Accumulates the time spent in wrapped callables, per stage, for the current push."""
+
+    def __init__(self):
+        self.acc = {}
+
+    def wrap(self, stage, fn):
+        acc = self.acc
+
+        def timed(*a, **k):
+            s = clock()
+            try:
+                return fn(*a, **k)
+            finally:
+                acc[stage] = acc.get(stage, 0.0) + clock() - s
+
+        return timed
+
+
+def instrumented(t, az, th, n_legs):
+    """Per-stage durations [s] of every closing push."""
+    tm = _Timer()
+    saved = {}
+    try:
+        saved[(online_mod, "cycle_features")] = online_mod.cycle_features
+        online_mod.cycle_features = tm.wrap("features", online_mod.cycle_features)
+        for name in KERNELS:
+            saved[(estimator_mod, name)] = getattr(estimator_mod, name)
+            setattr(estimator_mod, name, tm.wrap("kernel", getattr(estimator_mod, name)))
+        est = SlipEstimator(n_legs=n_legs)
+        est.segmenter.push = tm.wrap("segmenter", est.segmenter.push)
+        est.filter.update = tm.wrap("estimator", est.filter.update)
+        push = est.push
+        rows = []
+        for a, b, c in zip(t, az, th):
+            tm.acc.clear()
+            s = clock()
+            r = push(a, b, c)
+            total = clock() - s
+            if r and r[0].ok:
+                g = tm.acc.get
+                rows.append((total, g("segmenter", 0.0), g("features", 0.0), g("estimator", 0.0), g("kernel", 0.0)))
+    finally:
+        for (mod, name), fn in saved.items():
+            setattr(mod, name, fn)
+    r = np.array(rows)
+    total, seg, feat, upd, ker = r.T
+    return {
+        "total (instrumented)": total,
+        "segmenter": seg,
+        "features": feat,
+        "estimator": upd,
+        "  kernel": ker,
+        "  python": upd - ker,
+        "online": total - seg - feat - upd,
+    }
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--log", help="log to push (default: write the 10-minute benchmark log of bench_replay.py)")
+    ap.add_argument("--quick", action="store_true", help="push the first 150 s of the log only")
+    ap.add_argument("--repeat", type=int, default=1, help="bare/instrumented rounds (default 1)")
+    args = ap.parse_args(argv)
+    with tempfile.TemporaryDirectory(prefix="slipest-lat-") as tmp:
+        log = Path(args.log) if args.log else Path(tmp) / "log_10min.csv"
+        if not args.log:
+            sys.path.insert(0, str(Path(__file__).resolve().parent))
+            from bench_replay import write_log
+
+            write_log(log, 600.0, 1)
+        with LogReader(log) as r:
+            d = r.read_all()
+    n = 150_000 if args.quick else d.t.size
+    t, az, th = d.t[:n].tolist(), d.az[:n].tolist(), d.theta[:n].tolist()
+    n_legs = d.metadata.n_legs or 4
+    for rnd in range(args.repeat):
+        load0 = os.getloadavg()[0]
+        closing, closing_cpu, per = bare(t, az, th, n_legs)
+        stages = instrumented(t, az, th, n_legs)
+        load1 = os.getloadavg()[0]
+        print(f"round {rnd + 1}: {n} samples, load average {load0:.2f} -> {load1:.2f} on {os.cpu_count()} CPUs")
+        print(f"  {'closing push (bare)':22s} {_stats(closing)} ms   ({closing.size} cycles; {per * 1e6:.2f} us/push)")
+        print(f"  {'  its CPU time':22s} {_stats(closing_cpu)} ms   (without the time other processes had the CPU)")
+        for name, x in stages.items():
+            print(f"  {name:22s} {_stats(x)} ms")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
