@@ -10,8 +10,8 @@ and unknown, one cycle). Writes ``slipest/data/inverse_model.json``
 (``--out`` to write elsewhere). The benchmarks draw their soils with other
 seeds; nothing here looks at them.
 
-    python tools/train_inverse.py                 # ~3 min on 2 cores
-    python tools/train_inverse.py --n-train 5000  # quick, for trying things
+    python tools/train_inverse.py                             # ~6 min on 2 cores
+    python tools/train_inverse.py --n-train 30000 --degree 8  # quick, for trying things
 """
 
 from __future__ import annotations
@@ -42,9 +42,9 @@ def draw(n, rng, noise_g, rate, bar):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--n-train", type=int, default=100000, help="training stances (default 100000)")
+    ap.add_argument("--n-train", type=int, default=400000, help="training stances (default 400000)")
     ap.add_argument("--n-val", type=int, default=3000, help="held-out stances (default 3000)")
-    ap.add_argument("--degree", type=int, default=8, help="total degree of the surrogate polynomials (default 8)")
+    ap.add_argument("--degree", type=int, default=12, help="total degree of the surrogate polynomials (default 12)")
     ap.add_argument("--noise", type=float, default=0.01, help="IMU noise [g] (default 0.01)")
     ap.add_argument("--rate", type=float, default=1000.0, help="IMU rate [Hz] (default 1000)")
     ap.add_argument("--seed", type=int, default=777)

@@ -10,7 +10,8 @@ carried to the whole waveform), with the spread around it:
 * ``f``: the features :data:`MODEL_FEATURES` of one cycle
   (:mod:`slipest.features`), amplitudes in g, angles in rad, frequencies in Hz;
 * ``mu``: one polynomial of total degree :attr:`FeatureSurrogate.degree` in
-  the normalised ``(slip, kS, phiD, dphi)`` per feature (least squares);
+  the normalised ``(slip, kS, phiD, dphi)`` per feature, in the tensor
+  Legendre basis (well conditioned at high degree; least squares);
 * ``R``: the covariance of the residuals over the training set. It holds
   the IMU noise (training used 0.01 g at 1 kHz) **and** what a smooth
   surrogate cannot follow: in this model the waveform's end (the phase of
@@ -44,7 +45,8 @@ from slipest.inverse.base import SlipInverse, Soil
 from slipest.inverse.grid_kernels import grid_loglik, marginal_from_rows, select_cells
 
 #: Version of the inverse model file format.
-FORMAT_VERSION = 1
+#: 2: Legendre basis (1 was monomials; such a file is refused with a clear message).
+FORMAT_VERSION = 2
 #: Variables of the surrogate, in order.
 VARIABLES = ("slip", "kS", "phiD", "dphi")
 #: Features the shipped model uses (``noise`` and ``n_crossings`` are left out:
@@ -60,6 +62,21 @@ class InverseModelError(ValueError):
     """The inverse model file is missing, of another format version, or malformed."""
 
 
+#: Rows per block when building design matrices [-].
+_CHUNK = 20000
+
+
+def _basis(u, degree: int) -> np.ndarray:
+    """Legendre polynomials ``P_0..P_degree`` at ``u`` (any shape): shape ``u.shape + (degree + 1,)``."""
+    return np.polynomial.legendre.legvander(np.asarray(u, dtype=float), degree)
+
+
+def _design(u, terms) -> np.ndarray:
+    """Design matrix ``(n, T)`` of the tensor terms at normalised points ``u`` ``(n, 4)``."""
+    b = _basis(u, int(terms.max()))
+    return b[:, 0, terms[:, 0]] * b[:, 1, terms[:, 1]] * b[:, 2, terms[:, 2]] * b[:, 3, terms[:, 3]]
+
+
 def _terms(degree: int) -> np.ndarray:
     t = [e for e in itertools.product(range(degree + 1), repeat=4) if sum(e) <= degree]
     t.sort(key=lambda e: (sum(e), tuple(-v for v in e)))
@@ -68,12 +85,12 @@ def _terms(degree: int) -> np.ndarray:
 
 @dataclass(frozen=True)
 class FeatureSurrogate:
-    """Mean feature vector as polynomials in ``u = (x - center) / halfwidth``, ``x = (slip, kS, phiD, dphi)``.
+    """Mean feature vector as Legendre-basis polynomials in ``u = (x - center) / halfwidth``, ``x = (slip, kS, phiD, dphi)``.
 
     features: names of the modelled features (subset of ``FEATURE_NAMES``).
     center, halfwidth: ``(4,)`` normalisation (SI). ranges: ``(4, 2)``
     [lo, hi] of the training draw (SI). degree: total degree.
-    terms: ``(T, 4)`` exponents. coef: ``(T, d)``. R: ``(d, d)`` residual
+    terms: ``(T, 4)`` Legendre degrees per variable. coef: ``(T, d)``. R: ``(d, d)`` residual
     covariance (feature units). meta: provenance (free-form dict).
     """
 
@@ -137,10 +154,10 @@ class FeatureSurrogate:
         u = self.normalise(slip, kS, phiS, phiD)
         shape = u.shape[:-1]
         u = u.reshape(-1, 4)
-        pw = u[:, :, None] ** np.arange(self.degree + 1)
-        t = self.terms
-        design = pw[:, 0, t[:, 0]] * pw[:, 1, t[:, 1]] * pw[:, 2, t[:, 2]] * pw[:, 3, t[:, 3]]
-        return (design @ self.coef).reshape(shape + (len(self.features),))
+        out = np.empty((u.shape[0], len(self.features)))
+        for i in range(0, u.shape[0], _CHUNK):  # bounded memory at high degree
+            out[i : i + _CHUNK] = _design(u[i : i + _CHUNK], self.terms) @ self.coef
+        return out.reshape(shape + (len(self.features),))
 
     def whitener(self) -> np.ndarray:
         """``W`` with ``W W^T = R^-1``: ``(f - mu) @ W`` has identity covariance."""
@@ -158,7 +175,7 @@ class FeatureSurrogate:
         for t, c in zip(self.terms, self.coef):
             dense[tuple(t)] += c
         levels = [np.asarray(v, dtype=float) for v in (slip_nodes, kS_levels, phiD_levels, dphi_levels)]
-        pows = [((lv - self.center[j]) / self.halfwidth[j])[:, None] ** np.arange(p) for j, lv in enumerate(levels)]
+        pows = [_basis((lv - self.center[j]) / self.halfwidth[j], self.degree) for j, lv in enumerate(levels)]
         x = np.einsum("ze,abcef->abczf", pows[3], dense)
         x = np.einsum("yc,abczf->abyzf", pows[2], x)
         x = np.einsum("xb,abyzf->axyzf", pows[1], x)
@@ -172,7 +189,7 @@ class FeatureSurrogate:
 
     # ------------------------------------------------------------------ fitting
     @classmethod
-    def fit(cls, features_2d, slip, kS, phiS, phiD, features=MODEL_FEATURES, degree: int = 8, ranges=None, meta=None,
+    def fit(cls, features_2d, slip, kS, phiS, phiD, features=MODEL_FEATURES, degree: int = 12, ranges=None, meta=None,
             log_offset=None):
         """Least-squares fit on a training table (rows with non-finite features dropped).
 
@@ -197,11 +214,17 @@ class FeatureSurrogate:
         proto = cls(tuple(features), center, half, rng_, degree, terms, np.zeros((len(terms), len(cols))),
                     np.eye(len(cols)), dict(meta or {}), lo)
         u = (x - center) / half
-        pw = u[:, :, None] ** np.arange(degree + 1)
-        design = pw[:, 0, terms[:, 0]] * pw[:, 1, terms[:, 1]] * pw[:, 2, terms[:, 2]] * pw[:, 3, terms[:, 3]]
-        coef = np.linalg.lstsq(design, y, rcond=None)[0]
-        resid = y - design @ coef
-        R = np.cov(resid.T)
+        # normal equations accumulated in chunks (a degree-12 design of 4e5 rows would take 6 GB);
+        # the Legendre basis keeps them well conditioned; a tiny ridge guards the rank
+        A = np.zeros((len(terms), len(terms)))
+        B = np.zeros((len(terms), y.shape[1]))
+        for i in range(0, u.shape[0], _CHUNK):
+            dm = _design(u[i : i + _CHUNK], terms)
+            A += dm.T @ dm
+            B += dm.T @ y[i : i + _CHUNK]
+        coef = np.linalg.solve(A + 1e-8 * np.trace(A) / len(terms) * np.eye(len(terms)), B)
+        proto = cls(proto.features, center, half, rng_, degree, terms, coef, np.eye(len(cols)), proto.meta, lo)
+        R = np.cov((y - proto.mean(x[:, 0], x[:, 1], x[:, 2] + x[:, 3], x[:, 2])).T)
         return cls(proto.features, center, half, rng_, degree, terms, coef, R, proto.meta, lo)
 
     # ------------------------------------------------------------------ file
@@ -369,10 +392,12 @@ class SurrogateInverse(SlipInverse):
     name = "surrogate"
     needs_soil = ()
 
-    def __init__(self, model: FeatureSurrogate | None = None, grid: SoilGrid | None = None, n_dims: int = 8):
+    def __init__(self, model: FeatureSurrogate | None = None, grid: SoilGrid | None = None, n_dims: int | None = None):
         self.model = model or load_inverse_model()
         self.features = self.model.features
         self.grid = grid or SoilGrid.default(self.model.ranges)
+        if n_dims is None:  # every modelled feature (fewer directions lose information: measured in development)
+            n_dims = len(self.features)
         if not 1 <= n_dims <= len(self.features):
             raise ValueError(f"n_dims={n_dims} must be in [1, {len(self.features)}]")
         self.n_dims = int(n_dims)
