@@ -90,7 +90,7 @@ def grid_loglik(tc, fw, lp, node_width, dmat, lc, scratch):
     for k in range(K):
         row = dmat[k]
         lk = lp[k]
-        if D == 8:  # the default n_dims: one pass, the coordinates in registers
+        if D == 8:  # n_dims <= 8 (an option): one pass, the coordinates in registers
             t0, t1, t2, t3 = tc[0, k], tc[1, k], tc[2, k], tc[3, k]
             t4, t5, t6, t7 = tc[4, k], tc[5, k], tc[6, k], tc[7, k]
             f0, f1, f2, f3 = fw[0], fw[1], fw[2], fw[3]
@@ -192,7 +192,7 @@ def marginal_from_cells(tp, fw, lp, sel, base, n, nodes, ps, acc, buf):
         acc[k] = 0.0
     for i in range(n):
         t = tp[sel[i]]
-        if D == 8:  # the default n_dims: the coordinates in registers
+        if D == 8:  # n_dims <= 8 (an option): the coordinates in registers
             f0, f1, f2, f3 = fw[0], fw[1], fw[2], fw[3]
             f4, f5, f6, f7 = fw[4], fw[5], fw[6], fw[7]
             t0, t1, t2, t3 = t[0], t[1], t[2], t[3]
