@@ -132,3 +132,44 @@ def test_legs_from_metadata_or_option(log_path, capsys):
     # the shipped models are for 4 legs: another number is refused, not estimated wrongly
     rc, out, err = run([log_path, "--legs", 3], capsys)
     assert rc == 2 and "4-leg" in err and out == ""
+
+
+def _model_for_legs(path, n_legs):
+    """A small inverse model trained like tools/train_inverse.py does, for another wheel-leg geometry."""
+    from slipest.inverse.simdata import RANGES, draw_soils, simulate_features
+    from slipest.inverse.surrogate import FeatureSurrogate, save_inverse_model
+
+    rng = np.random.default_rng(11)
+    base = StickSlipParams().with_(nL=n_legs)
+    n = 1500
+    soils = draw_soils(n, rng)
+    slip = rng.uniform(*RANGES["slip"], n)
+    feats = simulate_features(slip, soils[:, 0], soils[:, 1], soils[:, 2], rng=rng, base=base)
+    m = FeatureSurrogate.fit(feats, slip, soils[:, 0], soils[:, 1], soils[:, 2], degree=3,
+                             ranges=[RANGES[k] for k in ("slip", "kS", "phiD", "dphi")],
+                             meta={"training": {"n_legs": n_legs, "omega": base.omega}})
+    return save_inverse_model(m, path)
+
+
+def test_model_option_estimates_another_geometry(tmp_path, capsys):
+    params = StickSlipParams(kS=900.0, phiS=0.5, phiD=0.3).with_(nL=6)
+    sc = Scenario.per_cycle(params, dict(noise_g=0.01, seed=5), slip=np.full(8, 0.3))
+    s = simulate_stream(sc)
+    log6 = tmp_path / "six.csv"
+    with LogWriter(log6, ("t", "az", "theta", "slip"), metadata=sc.metadata()) as w:
+        w.write(s.t, s.az, s.theta, s.slip)
+    # the shipped model is for 4 legs: refused
+    rc, out, err = run([log6], capsys)
+    assert rc == 2 and "4-leg" in err and out == ""
+    model6 = _model_for_legs(tmp_path / "six_legs.json", 6)
+    rc, out, err = run([log6, "--model", model6], capsys)
+    assert rc == 0, err
+    rows = list(csv.DictReader(io.StringIO(out)))
+    ok = [r for r in rows if r["quality"] == "ok"]
+    assert len(ok) >= 6 and "6 legs" in err
+    assert all(0.0 <= float(r["slip"]) <= 0.55 and float(r["slip_std"]) > 0 for r in ok)
+    # a model file that is not one: a clear error naming it
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    rc, out, err = run([log6, "--model", bad], capsys)
+    assert rc == 2 and "bad.json" in err and "not valid JSON" in err and out == ""

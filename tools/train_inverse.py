@@ -28,15 +28,16 @@ from tqdm import tqdm
 from slipest import __version__
 from slipest.inverse.simdata import RANGES, draw_soils, simulate_features
 from slipest.inverse.surrogate import MODEL_FEATURES, FeatureSurrogate, SurrogateInverse, save_inverse_model
+from slipest.model.params import StickSlipParams
 
 DEFAULT_OUT = Path(__file__).resolve().parents[1] / "slipest" / "data" / "inverse_model.json"
 
 
-def draw(n, rng, noise_g, rate, bar):
+def draw(n, rng, noise_g, rate, bar, base):
     soils = draw_soils(n, rng)
     slip = rng.uniform(*RANGES["slip"], n)
     feats = simulate_features(slip, soils[:, 0], soils[:, 1], soils[:, 2], rate=rate, noise_g=noise_g, rng=rng,
-                              progress=bar.update)
+                              progress=bar.update, base=base)
     return feats, slip, soils
 
 
@@ -47,14 +48,18 @@ def main(argv=None) -> int:
     ap.add_argument("--degree", type=int, default=12, help="total degree of the surrogate polynomials (default 12)")
     ap.add_argument("--noise", type=float, default=0.01, help="IMU noise [g] (default 0.01)")
     ap.add_argument("--rate", type=float, default=1000.0, help="IMU rate [Hz] (default 1000)")
+    ap.add_argument("--legs", type=int, default=4, help="legs of the wheel-leg the model is for (default 4)")
+    ap.add_argument("--omega", type=float, default=StickSlipParams().omega,
+                    help="leg angular speed [rad/s] of the training stances (default: the model's)")
     ap.add_argument("--seed", type=int, default=777)
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = ap.parse_args(argv)
     rng = np.random.default_rng(args.seed)
+    base = StickSlipParams().with_(nL=args.legs, omega=args.omega)
     t0 = time.time()
     with tqdm(total=args.n_train + args.n_val, desc="simulate", unit="stance", file=sys.stderr) as bar:
-        f_tr, s_tr, soil_tr = draw(args.n_train, rng, args.noise, args.rate, bar)
-        f_va, s_va, soil_va = draw(args.n_val, rng, args.noise, args.rate, bar)
+        f_tr, s_tr, soil_tr = draw(args.n_train, rng, args.noise, args.rate, bar, base)
+        f_va, s_va, soil_va = draw(args.n_val, rng, args.noise, args.rate, bar, base)
     ranges = [RANGES["slip"], RANGES["kS"], RANGES["phiD"], RANGES["dphi"]]
     model = FeatureSurrogate.fit(f_tr, s_tr, soil_tr[:, 0], soil_tr[:, 1], soil_tr[:, 2], MODEL_FEATURES,
                                  degree=args.degree, ranges=ranges)
@@ -79,8 +84,8 @@ def main(argv=None) -> int:
         "slipest_version": __version__,
         "training": {"n_train": args.n_train, "n_val": args.n_val, "seed": args.seed, "noise_g": args.noise,
                      "rate_hz": args.rate, "ranges": {k: list(v) for k, v in RANGES.items()},
-                     "model": "StickSlipParams defaults (kappa 0.3, nL 4, omega 0.63 rad/s)", "n_legs": 4,
-                     "omega": 0.63},
+                     "model": f"StickSlipParams defaults but nL {args.legs}, omega {args.omega:g} rad/s",
+                     "n_legs": args.legs, "omega": args.omega},
         "validation_one_cycle": {"soil_known": figs(known), "soil_unknown": figs(unknown),
                                  "residual_std_over_feature_std": dict(zip(model.features, rel))},
         "units": {"slip": "-", "kS": "N/m", "phiD": "rad", "dphi": "rad", "features": "see slipest.features.FEATURE_UNITS"},

@@ -43,6 +43,8 @@ def add_live_arguments(p: argparse.ArgumentParser) -> None:
     e.add_argument("--method", choices=("default", "eq515"), default="default",
                    help="as `slipest replay --method` (eq515 needs --kS and --dphi or --phiS/--phiD, "
                    "or --use-reference)")
+    e.add_argument("--model", metavar="FILE", default=None,
+                   help="inverse model JSON of the default method (default: the shipped one, made for 4 legs at 0.63 rad/s; tools/train_inverse.py --legs N makes one for another wheel-leg)")
     e.add_argument("--kS", type=float, default=None, help="known soil stiffness [N/m]")
     e.add_argument("--phiS", type=float, default=None, help="known static friction angle [rad]")
     e.add_argument("--phiD", type=float, default=None, help="known dynamic friction angle [rad]")
@@ -79,7 +81,13 @@ def live_from_args(args, **kwargs) -> "LiveEstimation":
     """The :class:`LiveEstimation` the live options describe (SystemExit on a bad combination)."""
     soil = {k: getattr(args, k) for k in ("kS", "phiS", "phiD", "dphi") if getattr(args, k, None) is not None}
     try:
+        model = None
+        if getattr(args, "model", None):
+            from slipest.inverse.surrogate import load_inverse_model
+
+            model = load_inverse_model(args.model)
         live = LiveEstimation(n_legs=args.legs, method=args.method, soil=soil, use_reference=args.use_reference,
+                              model=model,
                               wheels=args.wheel, stuck_samples=args.stuck_samples, sim_speed=args.sim_speed,
                               record=args.record, overwrite=args.overwrite, **kwargs)
         live.warmup()  # also checks the estimator options (e.g. eq515 without a soil)
@@ -134,7 +142,7 @@ class LiveEstimation:
     """
 
     def __init__(self, *, n_legs: int = 4, method: str | None = None, soil: dict | None = None,
-                 use_reference: bool = False,
+                 use_reference: bool = False, model=None,
                  wheels: list[int] | None = None, stuck_samples: int = 50, seq_modulus: int = 1 << 16,
                  time_modulus: float | None = None, sim_speed: float | None = None,
                  record: str | None = None, overwrite: bool = False, source: str = "",
@@ -143,6 +151,7 @@ class LiveEstimation:
         self.method = method
         self.soil = soil or None
         self.use_reference = use_reference
+        self.model = model  # the inverse model (FeatureSurrogate) of the default method; None: the shipped one
         self.only_wheels = set(wheels) if wheels else None
         self.stuck_samples = stuck_samples
         self.seq_modulus = seq_modulus
@@ -189,7 +198,7 @@ class LiveEstimation:
     def _default_factory(self, wheel: int):
         from slipest.online import SlipEstimator
 
-        kwargs = {"n_legs": self.n_legs, "use_reference": self.use_reference, "soil": self.soil}
+        kwargs = {"n_legs": self.n_legs, "use_reference": self.use_reference, "soil": self.soil, "model": self.model}
         if self.method is not None:
             kwargs["method"] = self.method
         return SlipEstimator(**kwargs)

@@ -22,6 +22,7 @@ import sys
 import numpy as np
 
 from slipest.cli import estimate_output
+from slipest.inverse.surrogate import load_inverse_model
 from slipest.io.log_csv import LogFormatError, LogReader
 from slipest.online import ESTIMATE_FIELDS, SlipEstimator
 
@@ -45,6 +46,8 @@ def add_parser(sub) -> None:
     p.add_argument("--method", choices=("default", "eq515"), default="default",
                    help="default: multi-feature inverse with the soil learnt as it goes; eq515: thesis Eq. 5.15 "
                    "(needs --kS and --dphi or --phiS/--phiD, or --use-reference)")
+    p.add_argument("--model", metavar="FILE", default=None,
+                   help="inverse model JSON of the default method (default: the shipped one, made for 4 legs at 0.63 rad/s; tools/train_inverse.py --legs N makes one for another wheel-leg)")
     p.add_argument("--kS", type=float, default=None, help="known soil stiffness [N/m]")
     p.add_argument("--phiS", type=float, default=None, help="known static friction angle [rad]")
     p.add_argument("--phiD", type=float, default=None, help="known dynamic friction angle [rad]")
@@ -156,8 +159,10 @@ def run(args: argparse.Namespace) -> int:
         if (args.truth or args.use_reference) and not reader.has_slip:
             return fail(f"{args.log}: --truth and --use-reference need a 'slip' column, the log has none")
         try:
-            est = SlipEstimator(n_legs=legs, method=args.method, soil=soil or None, use_reference=args.use_reference)
-        except (ValueError, TypeError) as exc:
+            model = load_inverse_model(args.model) if args.model else None
+            est = SlipEstimator(n_legs=legs, method=args.method, soil=soil or None, use_reference=args.use_reference,
+                                model=model)
+        except (ValueError, TypeError) as exc:  # InverseModelError is a ValueError: names the file
             return fail(str(exc))
         truth = TruthSummary(_metadata_dphi(reader.metadata) if args.truth else None) if args.truth else None
         out = sys.stdout if args.output == "-" else open(args.output, "w", encoding="utf-8", newline="\n")
