@@ -96,6 +96,20 @@ def test_dphi_uncertain_when_unobservable():
     assert est[-1].slip < 0.05
 
 
+def test_constant_slip_is_not_confidently_wrong():
+    # slip held at 0.3 for 80 cycles: soil and slip are confounded along the onset ridge; the posterior
+    # must not walk along it into a confident wrong answer (without forgetting it did: intervals
+    # covering 18 % of the truth, see the estimator's docstring)
+    s = _stream(np.full(80, 0.3), [dict(kS=1000.0, phiD=0.35, dphi=0.17)] * 80, seed=3)
+    est = [e for e in SlipEstimator().push_many(s.t, s.az, s.theta) if e.ok][10:]
+    assert len(est) >= 60
+    inside = [abs(e.slip - 0.3) <= 1.96 * e.slip_std for e in est]
+    assert np.mean(inside) >= 0.9
+    # and no forgetting reproduces the failure this guards against
+    bad = [e for e in SlipEstimator(estimator={"forget": 1.0}).push_many(s.t, s.az, s.theta) if e.ok][10:]
+    assert np.mean([abs(e.slip - 0.3) <= 1.96 * e.slip_std for e in bad]) < 0.6
+
+
 def test_reference_slip_used_only_when_asked(change_stream):
     s = change_stream
     n = 16000 * 4  # ~25 cycles would be slow to compare three times; 25 s of data suffice
