@@ -22,9 +22,9 @@ What is observable from what (this model, IMU noise 0.01 g at 1 kHz)
   worse than on the true soil, while the posterior mean of the soil is
   within one standard deviation of the truth. What helped (each measured
   on two development seeds): every whitened feature direction rather than
-  the 8 strongest, a degree-12 surrogate (degree 8 leaves a lack of fit
-  of about 0.25 noise standard deviations per feature), and a slip
-  tempering of 0.4. What did not: a finer soil grid (29 x 19 x 21),
+  the 8 strongest, a degree-14 surrogate (degree 8 leaves a lack of fit
+  of about 0.25 noise standard deviations per feature, degree 12 about
+  0.15), and a slip tempering of 0.4. What did not: a finer soil grid (29 x 19 x 21),
   lighter soil tempering, a smaller hazard, a residual covariance that
   varies with slip and soil.
 * Not observable: the soil, while the wheel does not stick-slip (slip near
@@ -79,7 +79,8 @@ caches, 0.3-0.45 ms from memory, hence :meth:`SoilSlipEstimator.prefetch`):
    accumulated evidence at about ``1 / (1 - forget)`` = 10 cycles'
    worth. The same run then gives slip 0.056 high with intervals covering
    100 %, and the accuracy with slip varying is unchanged (development
-   seeds 11/7/3: 0.029/0.028/0.027 from the 10th cycle).
+   seeds 11/7/3, degree-12 surrogate: 0.029/0.028/0.027 from the 10th
+   cycle with forgetting, 0.028/0.028/0.026 without).
 
 Why not an EKF/UKF over the soil: ``mu`` is a rough, partly multimodal
 function of the soil, and the soil is unknown over its whole range at the

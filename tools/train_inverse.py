@@ -10,7 +10,7 @@ and unknown, one cycle). Writes ``slipest/data/inverse_model.json``
 (``--out`` to write elsewhere). The benchmarks draw their soils with other
 seeds; nothing here looks at them.
 
-    python tools/train_inverse.py                             # ~6 min on 2 cores
+    python tools/train_inverse.py                             # ~5 min on 2 cores
     python tools/train_inverse.py --n-train 30000 --degree 8  # quick, for trying things
 """
 
@@ -45,7 +45,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--n-train", type=int, default=400000, help="training stances (default 400000)")
     ap.add_argument("--n-val", type=int, default=3000, help="held-out stances (default 3000)")
-    ap.add_argument("--degree", type=int, default=12, help="total degree of the surrogate polynomials (default 12)")
+    ap.add_argument("--degree", type=int, default=14, help="total degree of the surrogate polynomials (default 14)")
     ap.add_argument("--noise", type=float, default=0.01, help="IMU noise [g] (default 0.01)")
     ap.add_argument("--rate", type=float, default=1000.0, help="IMU rate [Hz] (default 1000)")
     ap.add_argument("--legs", type=int, default=4, help="legs of the wheel-leg the model is for (default 4)")

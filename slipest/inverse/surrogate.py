@@ -189,7 +189,7 @@ class FeatureSurrogate:
 
     # ------------------------------------------------------------------ fitting
     @classmethod
-    def fit(cls, features_2d, slip, kS, phiS, phiD, features=MODEL_FEATURES, degree: int = 12, ranges=None, meta=None,
+    def fit(cls, features_2d, slip, kS, phiS, phiD, features=MODEL_FEATURES, degree: int = 14, ranges=None, meta=None,
             log_offset=None):
         """Least-squares fit on a training table (rows with non-finite features dropped).
 
@@ -214,7 +214,7 @@ class FeatureSurrogate:
         proto = cls(tuple(features), center, half, rng_, degree, terms, np.zeros((len(terms), len(cols))),
                     np.eye(len(cols)), dict(meta or {}), lo)
         u = (x - center) / half
-        # normal equations accumulated in chunks (a degree-12 design of 4e5 rows would take 6 GB);
+        # normal equations accumulated in chunks (a degree-14 design of 4e5 rows would take 10 GB);
         # the Legendre basis keeps them well conditioned; a tiny ridge guards the rank
         A = np.zeros((len(terms), len(terms)))
         B = np.zeros((len(terms), y.shape[1]))
