@@ -194,12 +194,20 @@ def tcp_rx_queues_to(port: int) -> list[int]:
     return out
 
 
+#: Runs the module named by argv[1] as ``python -m`` would, with Ctrl-C raising KeyboardInterrupt. A
+#: process started in the background by a non-interactive shell (``cmd &``, as CI runners may) inherits
+#: SIGINT ignored, and Python then installs no KeyboardInterrupt handler: can.logger, which stops on
+#: KeyboardInterrupt, would ignore the test's SIGINT (seen: both cases timed out under such a run).
+_RUN_WITH_CTRL_C = ("import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+                    "mod = sys.argv.pop(1); runpy.run_module(mod, run_name='__main__', alter_sys=True)")
+
+
 @pytest.mark.parametrize("suffix", [".log", ".asc"])
 def test_can_logger_records_frames_to_a_file(thread_server, tmp_path, suffix):
     host, port, stop = thread_server
     path = tmp_path / f"capture{suffix}"
     logger = subprocess.Popen(
-        [sys.executable, "-u", "-m", "can.logger", "-i", "socketcand", "-c", "vcan0", "-f", str(path),
+        [sys.executable, "-u", "-c", _RUN_WITH_CTRL_C, "can.logger", "-i", "socketcand", "-c", "vcan0", "-f", str(path),
          "--bus-kwargs", f"host={host}", f"port={port}"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
