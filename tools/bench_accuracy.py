@@ -146,6 +146,7 @@ def main(argv=None) -> int:
     ap.add_argument("--hazard", type=float, help="estimator option (default: the estimator's)")
     ap.add_argument("--soil-temper", type=float, help="estimator option (default: the estimator's)")
     ap.add_argument("--slip-temper", type=float, help="estimator option (default: the estimator's)")
+    ap.add_argument("--forget", type=float, help="estimator option (default: the estimator's)")
     ap.add_argument("--n-dims", type=int, help="estimator option (default: the estimator's)")
     args = ap.parse_args(argv)
     eq = Eq515Inverse.from_calibration()
@@ -153,7 +154,8 @@ def main(argv=None) -> int:
     surro = SurrogateInverse(model)
     t0 = time.time()
     opts = {k: v for k, v in (("hazard", args.hazard), ("soil_temper", args.soil_temper),
-                              ("slip_temper", args.slip_temper), ("n_dims", args.n_dims)) if v is not None}
+                              ("slip_temper", args.slip_temper), ("forget", args.forget), ("n_dims", args.n_dims))
+            if v is not None}
     rows = [run_one(args.seed * 1000 + r, args.soils, args.cycles_per_soil, args.noise, args.rate, eq, surro, opts, model)
             for r in tqdm(range(args.runs), desc="runs", file=sys.stderr)]
     out = summarise(rows)
