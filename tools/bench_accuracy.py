@@ -21,7 +21,7 @@ is the target's "from the 10th cycle after the soil last changed"), and at
 exactly N. Never tune anything on this benchmark's seed (default 2024):
 development used other seeds.
 
-    python tools/bench_accuracy.py                 # 12 runs x 4 soils x 25 cycles, ~3 min
+    python tools/bench_accuracy.py                 # 12 runs x 4 soils x 25 cycles, ~15 s
     python tools/bench_accuracy.py --runs 2 --seed 7
 """
 
