@@ -42,6 +42,8 @@ from pathlib import Path
 
 import numpy as np
 
+from slipest.json_files import read_json
+
 #: Version of the calibration file format this module reads and writes.
 FORMAT_VERSION = 1
 
@@ -905,25 +907,8 @@ def load_calibration(path=None) -> dict:
     Raises :class:`CalibrationError` when the file is missing, is not JSON,
     has another ``format_version`` or lacks a documented key.
     """
-    if path is None:
-        from importlib import resources
-
-        res = resources.files("slipest").joinpath("data/calibration.json")
-        source = "shipped calibration slipest/data/calibration.json"
-        try:
-            text = res.read_text(encoding="utf-8")
-        except FileNotFoundError as exc:
-            raise CalibrationError(f"{source} is missing: run tools/calibrate.py --write-package-data") from exc
-    else:
-        source = str(path)
-        try:
-            text = Path(path).read_text(encoding="utf-8")
-        except FileNotFoundError as exc:
-            raise CalibrationError(f"calibration file {source} not found") from exc
-    try:
-        cal = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise CalibrationError(f"{source}: not valid JSON ({exc})") from exc
+    cal, source = read_json(path, "calibration.json", "calibration", "tools/calibrate.py --write-package-data",
+                            CalibrationError)
     return validate_calibration(cal, source)
 
 

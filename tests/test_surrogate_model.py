@@ -80,3 +80,10 @@ def test_shipped_model_is_the_current_format():
     m = load_inverse_model()
     assert m.degree >= 8 and m.terms.max() == m.degree
     assert m.coef.shape == (m.terms.shape[0], len(m.features))
+
+
+def test_unreadable_or_missing_model_file_is_a_clear_error(tmp_path):
+    with pytest.raises(InverseModelError, match=r"inverse model file .*nope\.json not found"):
+        load_inverse_model(tmp_path / "nope.json")
+    with pytest.raises(InverseModelError, match=r"inverse model file .* cannot be read"):
+        load_inverse_model(tmp_path)  # a directory

@@ -43,6 +43,7 @@ import numpy as np
 from slipest.features import FEATURE_NAMES
 from slipest.inverse.base import SlipInverse, Soil
 from slipest.inverse.grid_kernels import grid_loglik, marginal_from_rows, select_cells
+from slipest.json_files import read_json
 
 #: Version of the inverse model file format.
 #: 2: Legendre basis (1 was monomials; such a file is refused with a clear message).
@@ -284,24 +285,7 @@ def load_inverse_model(path=None) -> FeatureSurrogate:
     key = None if path is None else str(path)
     if key in _CACHE:
         return _CACHE[key]
-    if path is None:
-        from importlib import resources
-
-        source = "shipped inverse model slipest/data/inverse_model.json"
-        try:
-            text = resources.files("slipest").joinpath("data/inverse_model.json").read_text(encoding="utf-8")
-        except FileNotFoundError as exc:
-            raise InverseModelError(f"{source} is missing: run tools/train_inverse.py") from exc
-    else:
-        source = str(path)
-        try:
-            text = Path(path).read_text(encoding="utf-8")
-        except FileNotFoundError as exc:
-            raise InverseModelError(f"inverse model file {source} not found") from exc
-    try:
-        doc = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InverseModelError(f"{source}: not valid JSON ({exc})") from exc
+    doc, source = read_json(path, "inverse_model.json", "inverse model", "tools/train_inverse.py", InverseModelError)
     model = FeatureSurrogate.from_dict(doc, source)
     _CACHE[key] = model
     return model
