@@ -33,6 +33,7 @@ from typing import Callable
 
 import numpy as np
 
+from slipest.cli.estimator_args import add_estimator_arguments, model_from_args, soil_from_args
 from slipest.io.device_stream import WheelSamples, WheelStream
 
 
@@ -40,15 +41,7 @@ def add_live_arguments(p: argparse.ArgumentParser) -> None:
     """Options shared by the live commands."""
     e = p.add_argument_group("estimation")
     e.add_argument("--legs", type=int, default=4, help="legs of each wheel-leg (default 4)")
-    e.add_argument("--method", choices=("default", "eq515"), default="default",
-                   help="as `slipest replay --method` (eq515 needs --kS and --dphi or --phiS/--phiD, "
-                   "or --use-reference)")
-    e.add_argument("--model", metavar="FILE", default=None,
-                   help="inverse model JSON of the default method (default: the shipped one, made for 4 legs at 0.63 rad/s; tools/train_inverse.py --legs N makes one for another wheel-leg)")
-    e.add_argument("--kS", type=float, default=None, help="known soil stiffness [N/m]")
-    e.add_argument("--phiS", type=float, default=None, help="known static friction angle [rad]")
-    e.add_argument("--phiD", type=float, default=None, help="known dynamic friction angle [rad]")
-    e.add_argument("--dphi", type=float, default=None, help="known phiS - phiD [rad]")
+    add_estimator_arguments(e)
     e.add_argument("--use-reference", action="store_true",
                    help="learn the soil from the reference slip frames the device sends (testbeds)")
     e.add_argument("--wheel", type=int, action="append", default=None, metavar="W",
@@ -79,16 +72,9 @@ def add_live_arguments(p: argparse.ArgumentParser) -> None:
 
 def live_from_args(args, **kwargs) -> "LiveEstimation":
     """The :class:`LiveEstimation` the live options describe (SystemExit on a bad combination)."""
-    soil = {k: getattr(args, k) for k in ("kS", "phiS", "phiD", "dphi") if getattr(args, k, None) is not None}
     try:
-        model = None
-        if getattr(args, "model", None):
-            from slipest.inverse.surrogate import load_inverse_model
-
-            model = load_inverse_model(args.model)
-        live = LiveEstimation(n_legs=args.legs, method=args.method, soil=soil, use_reference=args.use_reference,
-                              model=model,
-                              wheels=args.wheel, stuck_samples=args.stuck_samples, sim_speed=args.sim_speed,
+        live = LiveEstimation(n_legs=args.legs, method=args.method, soil=soil_from_args(args),
+                              use_reference=args.use_reference, model=model_from_args(args), wheels=args.wheel, stuck_samples=args.stuck_samples, sim_speed=args.sim_speed,
                               record=args.record, overwrite=args.overwrite, **kwargs)
         live.warmup()  # also checks the estimator options (e.g. eq515 without a soil)
     except FileExistsError as exc:

@@ -22,7 +22,7 @@ import sys
 import numpy as np
 
 from slipest.cli import estimate_output
-from slipest.inverse.surrogate import load_inverse_model
+from slipest.cli.estimator_args import add_estimator_arguments, model_from_args, soil_from_args
 from slipest.io.log_csv import LogFormatError, LogReader
 from slipest.online import ESTIMATE_FIELDS, SlipEstimator
 
@@ -43,15 +43,7 @@ def add_parser(sub) -> None:
     p.add_argument("-o", "--output", default="-", help="output file ('-' or omitted: stdout)")
     p.add_argument("--format", choices=("csv", "jsonl"), default="csv", help="output format (default csv)")
     p.add_argument("--legs", type=int, default=None, help="legs of the wheel-leg (default: the log's nL, else 4)")
-    p.add_argument("--method", choices=("default", "eq515"), default="default",
-                   help="default: multi-feature inverse with the soil learnt as it goes; eq515: thesis Eq. 5.15 "
-                   "(needs --kS and --dphi or --phiS/--phiD, or --use-reference)")
-    p.add_argument("--model", metavar="FILE", default=None,
-                   help="inverse model JSON of the default method (default: the shipped one, made for 4 legs at 0.63 rad/s; tools/train_inverse.py --legs N makes one for another wheel-leg)")
-    p.add_argument("--kS", type=float, default=None, help="known soil stiffness [N/m]")
-    p.add_argument("--phiS", type=float, default=None, help="known static friction angle [rad]")
-    p.add_argument("--phiD", type=float, default=None, help="known dynamic friction angle [rad]")
-    p.add_argument("--dphi", type=float, default=None, help="known phiS - phiD [rad]")
+    add_estimator_arguments(p)
     p.add_argument("--truth", action="store_true",
                    help="summarise the errors against the log's slip column (RMSE, bias, 95%% coverage)")
     p.add_argument("--use-reference", action="store_true",
@@ -143,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"slipest replay: {msg}", file=sys.stderr)
         return 2
 
-    soil = {k: getattr(args, k) for k in ("kS", "phiS", "phiD", "dphi") if getattr(args, k) is not None}
+    soil = soil_from_args(args)
     source = sys.stdin.buffer if args.log == "-" else args.log
     try:
         reader = LogReader(source, skip_bad=args.skip_bad)
@@ -159,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
         if (args.truth or args.use_reference) and not reader.has_slip:
             return fail(f"{args.log}: --truth and --use-reference need a 'slip' column, the log has none")
         try:
-            model = load_inverse_model(args.model) if args.model else None
+            model = model_from_args(args)
             est = SlipEstimator(n_legs=legs, method=args.method, soil=soil or None, use_reference=args.use_reference,
                                 model=model)
         except (ValueError, TypeError) as exc:  # InverseModelError is a ValueError: names the file
