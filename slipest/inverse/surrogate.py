@@ -78,6 +78,15 @@ def _design(u, terms) -> np.ndarray:
     return b[:, 0, terms[:, 0]] * b[:, 1, terms[:, 1]] * b[:, 2, terms[:, 2]] * b[:, 3, terms[:, 3]]
 
 
+def _evaluate(u, terms, coef) -> np.ndarray:
+    """The polynomials at normalised points ``u`` ``(n, 4)``: ``(n, d)``, a block of rows at a time
+    (bounded memory at high degree)."""
+    out = np.empty((u.shape[0], coef.shape[1]))
+    for i in range(0, u.shape[0], _CHUNK):
+        out[i : i + _CHUNK] = _design(u[i : i + _CHUNK], terms) @ coef
+    return out
+
+
 def _terms(degree: int) -> np.ndarray:
     t = [e for e in itertools.product(range(degree + 1), repeat=4) if sum(e) <= degree]
     t.sort(key=lambda e: (sum(e), tuple(-v for v in e)))
@@ -154,11 +163,7 @@ class FeatureSurrogate:
         """Modelled mean features ``(..., d)`` at slip [-] on soil kS [N/m], phiS, phiD [rad]."""
         u = self.normalise(slip, kS, phiS, phiD)
         shape = u.shape[:-1]
-        u = u.reshape(-1, 4)
-        out = np.empty((u.shape[0], len(self.features)))
-        for i in range(0, u.shape[0], _CHUNK):  # bounded memory at high degree
-            out[i : i + _CHUNK] = _design(u[i : i + _CHUNK], self.terms) @ self.coef
-        return out.reshape(shape + (len(self.features),))
+        return _evaluate(u.reshape(-1, 4), self.terms, self.coef).reshape(shape + (len(self.features),))
 
     def whitener(self) -> np.ndarray:
         """``W`` with ``W W^T = R^-1``: ``(f - mu) @ W`` has identity covariance."""
@@ -212,8 +217,6 @@ class FeatureSurrogate:
         center = rng_.mean(axis=1)
         half = np.where(rng_[:, 1] > rng_[:, 0], 0.5 * (rng_[:, 1] - rng_[:, 0]), 1.0)
         terms = _terms(degree)
-        proto = cls(tuple(features), center, half, rng_, degree, terms, np.zeros((len(terms), len(cols))),
-                    np.eye(len(cols)), dict(meta or {}), lo)
         u = (x - center) / half
         # normal equations accumulated in chunks (a degree-14 design of 4e5 rows would take 10 GB);
         # the Legendre basis keeps them well conditioned; a tiny ridge guards the rank
@@ -224,9 +227,8 @@ class FeatureSurrogate:
             A += dm.T @ dm
             B += dm.T @ y[i : i + _CHUNK]
         coef = np.linalg.solve(A + 1e-8 * np.trace(A) / len(terms) * np.eye(len(terms)), B)
-        proto = cls(proto.features, center, half, rng_, degree, terms, coef, np.eye(len(cols)), proto.meta, lo)
-        R = np.cov((y - proto.mean(x[:, 0], x[:, 1], x[:, 2] + x[:, 3], x[:, 2])).T)
-        return cls(proto.features, center, half, rng_, degree, terms, coef, R, proto.meta, lo)
+        R = np.cov((y - _evaluate(u, terms, coef)).T)
+        return cls(tuple(features), center, half, rng_, degree, terms, coef, R, dict(meta or {}), lo)
 
     # ------------------------------------------------------------------ file
     def to_dict(self) -> dict:
