@@ -203,21 +203,16 @@ def _cycle_step(w, prior, hazard, soil_temper, forget, cutoff, node_width, coars
         for s in range(S):
             if ll[s] > mx:
                 mx = ll[s]
+        top = -np.inf  # w^forget * L^temper, in logs (the weights span hundreds of decades)
+        for s in range(S):
+            v = forget * math.log(w[s]) + soil_temper * (ll[s] - mx) if w[s] > 0.0 else -np.inf
+            ll[s] = v
+            if v > top:
+                top = v
         tot = 0.0
-        if forget == 1.0:
-            for s in range(S):
-                w[s] *= math.exp(soil_temper * (ll[s] - mx))
-                tot += w[s]
-        else:  # w^forget * L^temper, in logs (the weights span hundreds of decades)
-            top = -np.inf
-            for s in range(S):
-                v = forget * math.log(w[s]) + soil_temper * (ll[s] - mx) if w[s] > 0.0 else -np.inf
-                ll[s] = v
-                if v > top:
-                    top = v
-            for s in range(S):
-                w[s] = math.exp(ll[s] - top)
-                tot += w[s]
+        for s in range(S):
+            w[s] = math.exp(ll[s] - top)
+            tot += w[s]
         for s in range(S):
             w[s] /= tot
     weighted_moments(w, summary_x, summary_q, out[3:])

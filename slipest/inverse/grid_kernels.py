@@ -90,33 +90,16 @@ def grid_loglik(tc, fw, lp, node_width, dmat, lc, scratch):
     for k in range(K):
         row = dmat[k]
         lk = lp[k]
-        if D == 8:  # n_dims <= 8 (an option): one pass, the coordinates in registers
-            t0, t1, t2, t3 = tc[0, k], tc[1, k], tc[2, k], tc[3, k]
-            t4, t5, t6, t7 = tc[4, k], tc[5, k], tc[6, k], tc[7, k]
-            f0, f1, f2, f3 = fw[0], fw[1], fw[2], fw[3]
-            f4, f5, f6, f7 = fw[4], fw[5], fw[6], fw[7]
+        for s in range(S):
+            row[s] = np.float32(0.0)
+        for j in range(D):
+            fj = fw[j]
+            tj = tc[j, k]
             for s in range(S):
-                e0 = t0[s] - f0
-                e1 = t1[s] - f1
-                e2 = t2[s] - f2
-                e3 = t3[s] - f3
-                e4 = t4[s] - f4
-                e5 = t5[s] - f5
-                e6 = t6[s] - f6
-                e7 = t7[s] - f7
-                q = e0 * e0 + e1 * e1 + e2 * e2 + e3 * e3 + e4 * e4 + e5 * e5 + e6 * e6 + e7 * e7
-                row[s] = np.float32(-0.5) * q + lk
-        else:
-            for s in range(S):
-                row[s] = np.float32(0.0)
-            for j in range(D):
-                fj = fw[j]
-                tj = tc[j, k]
-                for s in range(S):
-                    e = tj[s] - fj
-                    row[s] += e * e
-            for s in range(S):
-                row[s] = np.float32(-0.5) * row[s] + lk
+                e = tj[s] - fj
+                row[s] += e * e
+        for s in range(S):
+            row[s] = np.float32(-0.5) * row[s] + lk
         if k == 0:
             for s in range(S):
                 mx[s] = row[s]
@@ -192,30 +175,14 @@ def marginal_from_cells(tp, fw, lp, sel, base, n, nodes, ps, acc, buf):
         acc[k] = 0.0
     for i in range(n):
         t = tp[sel[i]]
-        if D == 8:  # n_dims <= 8 (an option): the coordinates in registers
-            f0, f1, f2, f3 = fw[0], fw[1], fw[2], fw[3]
-            f4, f5, f6, f7 = fw[4], fw[5], fw[6], fw[7]
-            t0, t1, t2, t3 = t[0], t[1], t[2], t[3]
-            t4, t5, t6, t7 = t[4], t[5], t[6], t[7]
+        for k in range(Kp):
+            buf[k] = np.float32(0.0)
+        for j in range(D):
+            fj = fw[j]
+            tj = t[j]
             for k in range(Kp):
-                e0 = t0[k] - f0
-                e1 = t1[k] - f1
-                e2 = t2[k] - f2
-                e3 = t3[k] - f3
-                e4 = t4[k] - f4
-                e5 = t5[k] - f5
-                e6 = t6[k] - f6
-                e7 = t7[k] - f7
-                buf[k] = e0 * e0 + e1 * e1 + e2 * e2 + e3 * e3 + e4 * e4 + e5 * e5 + e6 * e6 + e7 * e7
-        else:
-            for k in range(Kp):
-                buf[k] = np.float32(0.0)
-            for j in range(D):
-                fj = fw[j]
-                tj = t[j]
-                for k in range(Kp):
-                    e = tj[k] - fj
-                    buf[k] += e * e
+                e = tj[k] - fj
+                buf[k] += e * e
         b = base[i]
         # separate loops: one loop reading the table rows and updating acc has too many pointers
         # to check for overlap, and does not vectorise
