@@ -232,7 +232,7 @@ class PtyLink(_BaseLink):
         while True:
             try:
                 data = os.read(fd, 65536)
-            except (BlockingIOError, OSError):
+            except OSError:  # EAGAIN: nothing left; EIO: the slave went with the master
                 break
             if not data:
                 break
