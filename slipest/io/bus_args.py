@@ -38,6 +38,8 @@ from typing import Any
 
 import can
 
+from slipest.io.socketcand_server import tcp_peer_closed
+
 __all__ = [
     "BusOpenError",
     "BusConfig",
@@ -199,12 +201,7 @@ def _peer_closed(bus) -> bool:
     sock = _socket_of(bus)
     if sock is None or sock.type != socket.SOCK_STREAM:
         return False
-    try:
-        return sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
-    except (BlockingIOError, InterruptedError):
-        return False
-    except OSError:
-        return True
+    return tcp_peer_closed(sock)
 
 
 def _shutdown_quietly(bus) -> None:

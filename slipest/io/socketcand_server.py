@@ -577,6 +577,12 @@ def socketcand_peer_closed(bus) -> bool:
     sock = getattr(bus, "_SocketCanDaemonBus__socket", None)
     if not isinstance(sock, socket.socket):
         raise TypeError(f"not a python-can socketcand bus: {type(bus).__name__}")
+    return tcp_peer_closed(sock)
+
+
+def tcp_peer_closed(sock: socket.socket) -> bool:
+    """True when the peer of a connected TCP socket has closed it (end of file) or the socket is
+    unusable (closed here, or an error); peeks without consuming data."""
     if sock.fileno() < 0:
         return True
     try:
