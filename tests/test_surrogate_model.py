@@ -87,3 +87,18 @@ def test_unreadable_or_missing_model_file_is_a_clear_error(tmp_path):
         load_inverse_model(tmp_path / "nope.json")
     with pytest.raises(InverseModelError, match=r"inverse model file .* cannot be read"):
         load_inverse_model(tmp_path)  # a directory
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("terms", [[0, 0, 0, 99]], "terms must be"),
+    ("halfwidth", [1.0, 0.0, 1.0, 1.0], "halfwidth must be"),
+    ("coef", [[1.0, "x"]], "malformed inverse model"),
+    ("center", [[0.0], [1.0, 2.0]], "malformed inverse model"),
+])
+def test_malformed_model_file_names_the_file_and_the_fault(fitted, tmp_path, field, value, message):
+    doc = fitted.to_dict()
+    doc[field] = value
+    path = tmp_path / "broken.json"
+    path.write_text(json.dumps(doc))
+    with pytest.raises(InverseModelError, match=rf"broken\.json: .*{message}"):
+        load_inverse_model(path)

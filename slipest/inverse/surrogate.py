@@ -124,6 +124,12 @@ class FeatureSurrogate:
         unknown = [f for f in self.features if f not in FEATURE_NAMES]
         if unknown:
             raise InverseModelError(f"inverse model uses unknown feature(s) {unknown}")
+        t = self.terms
+        if t.ndim != 2 or t.shape[1] != 4 or (t < 0).any() or (t.sum(axis=1) > self.degree).any():
+            raise InverseModelError(f"inverse model terms must be (T, 4) degrees >= 0 of total at most {self.degree}")
+        if self.center.shape != (4,) or self.halfwidth.shape != (4,) or not np.all(np.isfinite(self.center)) \
+                or not np.all(np.isfinite(self.halfwidth) & (self.halfwidth > 0)):
+            raise InverseModelError("inverse model center and halfwidth must be 4 finite values (halfwidth > 0)")
         if self.coef.shape != (self.terms.shape[0], d) or self.R.shape != (d, d):
             raise InverseModelError(
                 f"inverse model shapes do not agree: {self.terms.shape[0]} terms, coef {self.coef.shape}, "
@@ -262,6 +268,15 @@ class FeatureSurrogate:
             raise InverseModelError(f"{source}: missing key(s) {missing}")
         if list(d["variables"]) != list(VARIABLES):
             raise InverseModelError(f"{source}: variables {d['variables']} are not {list(VARIABLES)}")
+        try:
+            return cls._from_fields(d)
+        except InverseModelError as exc:
+            raise InverseModelError(f"{source}: {exc}") from None
+        except (ValueError, TypeError) as exc:  # ragged or non-numeric arrays
+            raise InverseModelError(f"{source}: malformed inverse model ({exc})") from None
+
+    @classmethod
+    def _from_fields(cls, d: dict) -> "FeatureSurrogate":
         return cls(
             features=tuple(d["features"]),
             center=np.asarray(d["center"], dtype=float),
