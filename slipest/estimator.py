@@ -24,7 +24,11 @@ What is observable from what (this model, IMU noise 0.01 g at 1 kHz)
   on two development seeds): every whitened feature direction rather than
   the 8 strongest, a degree-14 surrogate (degree 8 leaves a lack of fit
   of about 0.25 noise standard deviations per feature, degree 12 about
-  0.15), and a slip tempering of 0.4. What did not: a finer soil grid (29 x 19 x 21),
+  0.15), a slip tempering of 0.4, and, once the surrogate was that good,
+  a finer ``dphi`` axis of the soil grid (31 levels, 0.0117 rad apart,
+  instead of 11: slip 0.028 / 0.027 / 0.025 on seeds 11 / 7 / 3 became
+  0.025 / 0.023 / 0.025; finer ``kS`` and ``phiD`` axes gained nothing,
+  see :meth:`~slipest.inverse.surrogate.SoilGrid.default`). What did not:
   lighter soil tempering, a smaller hazard, a residual covariance that
   varies with slip and soil.
 * Not observable: the soil, while the wheel does not stick-slip (slip near
@@ -43,14 +47,14 @@ What is observable from what (this model, IMU noise 0.01 g at 1 kHz)
 How (the recursion)
 -------------------
 The soil ``(kS, phiD, dphi)`` is a slowly varying state on a grid of cells
-(:class:`slipest.inverse.surrogate.SoilGrid`, 2145 cells), filtered by a
+(:class:`slipest.inverse.surrogate.SoilGrid`, 3410 cells), filtered by a
 point-mass (discrete) Bayes filter (the update of
 :func:`filterpy.discrete_bayes.update`, written out and compiled with the
 rest of the cycle: filterpy's own normalisation sums in Python and alone
 cost 0.3 ms a cycle); slip is a new unknown every cycle, marginalised on a
 grid of slip nodes. Per cycle (:func:`_cycle_step`, compiled, on the kernels of
-:mod:`slipest.inverse.grid_kernels`: about 0.15 ms with its tables in the CPU
-caches, 0.3-0.45 ms from memory, hence :meth:`SoilSlipEstimator.prefetch`):
+:mod:`slipest.inverse.grid_kernels`: about 0.3 ms with its tables in the CPU
+caches, 0.4-0.6 ms from memory, hence :meth:`SoilSlipEstimator.prefetch`):
 
 1. *predict*: the soil may have changed: with probability ``hazard`` the
    soil is redrawn from the prior (mixing with it keeps every cell
@@ -116,7 +120,7 @@ from slipest.inverse.grid_kernels import (
 )
 from slipest.inverse.surrogate import SLIP_NODES, FeatureSurrogate, SoilGrid, SurrogateInverse, load_inverse_model, slip_prior
 
-#: The soil update sums the slip likelihood over every SOIL_STRIDE-th slip node (0.03 apart: a
+#: The soil update sums the slip likelihood over every SOIL_STRIDE-th slip node (0.02 apart: a
 #: Riemann sum of a Gaussian of standard deviation sigma is exact to ~1 % down to a step of 2 sigma,
 #: and a cycle's slip likelihood on one soil is about 0.015 wide); the slip estimate uses every
 #: node (0.01 apart) on the cells that matter.
@@ -360,7 +364,7 @@ class SoilSlipEstimator:
         return None if self._known else self._w.copy()
 
     def prefetch(self) -> None:
-        """Bring what the next cycle step reads (about 5 MB: the grid tables, the weights, scratch) into the
+        """Bring what the next cycle step reads (about 13 MB: the grid tables, the weights, scratch) into the
         CPU caches. Call it shortly before a cycle closes (:class:`~slipest.online.SlipEstimator` does, one
         live sample at a time): the step then waits less on memory. Takes about 0.1-0.2 ms; changes nothing else."""
         if self._known:

@@ -10,7 +10,7 @@ soil cell ``s`` at every slip node ``k``:
 (``lp``: log prior of the slip nodes), then marginalise slip (per cell) or
 the soil (per slip node). Tables are **columnar**, ``(D, K, S)`` float32:
 coordinate, slip node, soil cell, the cell innermost, so that every inner
-loop runs over the cells (2145 by default) contiguously and vectorises;
+loop runs over the cells (3410 by default) contiguously and vectorises;
 loops over the 28-56 slip nodes of one cell are too short to.
 
 ``exp`` of a log-likelihood difference is :func:`fexp` where the sums are

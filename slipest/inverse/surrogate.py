@@ -329,12 +329,17 @@ class SoilGrid:
 
     @classmethod
     def default(cls, ranges=None) -> "SoilGrid":
-        """15 x 13 x 11 levels over the spec's ranges (steps 71 N/m, 0.025 rad, 0.035 rad): 2145 cells.
+        """11 x 10 x 31 levels over the spec's ranges (steps 100 N/m, 0.033 rad, 0.0117 rad): 3410 cells.
 
-        Finer grids (21 x 13 x 15) gave the same slip accuracy in development
-        for twice the time a cycle; the posterior mean interpolates between levels."""
+        The steps follow how sharply a cycle's features pin each axis down:
+        ``dphi`` (the oscillation amplitude) most, ``kS`` and ``phiD`` much
+        less. Measured in development (slip RMSE from the 10th cycle, seeds
+        11 / 7 / 3 of ``tools/bench_accuracy.py``'s draw): 15 x 13 x 11
+        levels gave 0.028 / 0.027 / 0.025; 15 x 13 x 21, 0.026 / 0.025; 11 x
+        10 x 31, 0.025 / 0.023 / 0.025; more ``dphi`` levels (41) or more
+        ``kS`` and ``phiD`` levels (29 x 25 x 21) gained nothing more."""
         r = np.asarray(ranges, dtype=float) if ranges is not None else np.array([[0, .5], [500, 1500], [.1, .4], [0, .35]])
-        return cls(np.linspace(r[1, 0], r[1, 1], 15), np.linspace(r[2, 0], r[2, 1], 13), np.linspace(r[3, 0], r[3, 1], 11))
+        return cls(np.linspace(r[1, 0], r[1, 1], 11), np.linspace(r[2, 0], r[2, 1], 10), np.linspace(r[3, 0], r[3, 1], 31))
 
     @property
     def shape(self) -> tuple:
