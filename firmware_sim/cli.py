@@ -205,6 +205,9 @@ def main(argv: list[str] | None = None) -> int:
     device = Device(feed, link, plan, speed=args.speed, clock=args.clock, announce=_announce, stop=stop,
                     wait_peer=args.wait_peer, linger=args.linger, send_log=bool(args.send_log))
     code = 0
+    from slipest.startup_gc import freeze_startup_objects
+
+    freeze_startup_objects()  # no 10 ms full garbage collection over the start-up objects while pacing frames
     try:
         report = device.run()
     except (TimeoutError, OSError) as exc:

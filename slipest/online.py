@@ -42,6 +42,12 @@ carry the truth along).
 The same object serves replay and live streams; :meth:`SlipEstimator.iter_estimates`
 runs it over an iterable of sample chunks and ``on_estimate`` calls back
 with every estimate as soon as it exists.
+
+Live, once set up (estimator built, bus or port open), call
+:func:`slipest.startup_gc.freeze_startup_objects`, as the live commands
+do: otherwise CPython's occasional full garbage collection walks the ~120k
+start-up objects and stops the process for 30-60 ms, samples and estimates
+alike.
 """
 
 from __future__ import annotations

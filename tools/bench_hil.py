@@ -23,6 +23,9 @@ Figures (all clocks are the host's CLOCK_MONOTONIC, shared by the processes):
   receiver's intake times): median, p99 (target p99 < 2 ms);
 * time from the cycle's closing sample being sent to the estimate: ready in the estimator
   (serial) / received from the bus by another process (CAN) (target < 5 ms);
+* the three slowest frames, each with the garbage collections of this (the estimator's)
+  process that overlapped it and, over CAN, its split into device -> server and server ->
+  intake (from the server's forwarding stamp in each frame);
 * corruption: crashes (exceptions, estimator errors), estimates whose feature window holds a
   frame that did not arrive intact (must be 0), corrupted frames delivered (must be 0), slip
   RMSE on intact cycles vs the clean run.
@@ -35,6 +38,7 @@ Figures (all clocks are the host's CLOCK_MONOTONIC, shared by the processes):
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import math
 import os
@@ -53,9 +57,10 @@ sys.path.insert(0, os.path.dirname(HERE))
 
 from slipest.cli.live import LiveEstimation, feed_batches  # noqa: E402
 from slipest.io.bus_args import BusConfig  # noqa: E402
-from slipest.io.can_messages import COUNTER_MODULUS, TIME_MOD_PERIOD  # noqa: E402
+from slipest.io.can_messages import COUNTER_MODULUS, TIME_MOD_PERIOD, CanDecoder, ImuMessage  # noqa: E402
 from slipest.io.can_source import CanSource  # noqa: E402
 from slipest.io.serial_source import SerialSource  # noqa: E402
+from slipest.startup_gc import freeze_startup_objects  # noqa: E402
 
 PY = sys.executable
 SLIP = 0.3
@@ -139,6 +144,7 @@ class Receiver:
 
         self.live.samples = samples
         self.live.warmup()
+        freeze_startup_objects()  # as run_live (slipest serial / can) does before streaming
 
     def _on_estimate(self, wheel, est, info):
         self.estimates.append((est, info["ready"]))
@@ -146,6 +152,69 @@ class Receiver:
             self.publish(wheel, est)
 
     publish = None
+
+
+class HopRecorder:
+    """Where a frame's time went (bench instrumentation, not product code).
+
+    ``gc``: this process's garbage collections of 2 ms or more, as (start monotonic [s],
+    duration [s], generation); the live estimator and the source's reader thread both
+    stop while one runs. For CAN, ``frames``: per IMU frame decoded, (counter, server
+    forwarding time, decode time) [s, monotonic]: the socketcand server stamps each frame
+    it forwards with its wall clock (``< frame ID sec.usec ... >``), converted here with
+    the wall-minus-monotonic offset read at the start and the end of the run.
+    """
+
+    def __init__(self):
+        self.gc = []
+        self.frames = []
+        self._gc_t0 = 0.0
+        self.offsets = [(time.monotonic(), time.time() - time.monotonic())]
+
+    def gc_callback(self, phase, info):
+        now = time.perf_counter()
+        if phase == "start":
+            self._gc_t0 = now
+        elif now - self._gc_t0 >= 2e-3:
+            self.gc.append((time.monotonic() - (now - self._gc_t0), now - self._gc_t0, info["generation"]))
+
+    def wrap(self, decoder):
+        """``decoder`` with its ``decode`` recording every IMU frame's server stamp and decode time."""
+        inner = decoder.decode
+        frames = self.frames
+
+        def decode(msg):
+            rec = inner(msg)
+            if isinstance(rec, ImuMessage):
+                frames.append((rec.counter, msg.timestamp, time.monotonic()))
+            return rec
+
+        decoder.decode = decode
+        return decoder
+
+    def finish(self):
+        self.offsets.append((time.monotonic(), time.time() - time.monotonic()))
+
+    def server_mono(self, wall, at):
+        """A server wall-clock stamp [s] as monotonic [s], the offset interpolated at monotonic ``at``."""
+        (m0, o0), (m1, o1) = self.offsets[0], self.offsets[-1]
+        off = o0 if m1 <= m0 else o0 + (o1 - o0) * (at - m0) / (m1 - m0)
+        return wall - off
+
+    def explain(self, send, intake, seq, modulus):
+        """Hop split and overlapping collections of one frame sent at ``send`` and taken in at ``intake`` [s]."""
+        out = {"send_s": send, "latency_ms": (intake - send) * 1e3}
+        if self.frames:
+            cands = [(abs(dec - intake), srv, dec) for c, srv, dec in self.frames if c == seq % modulus
+                     and abs(dec - intake) < 1.0]
+            if cands:
+                _, srv, dec = min(cands)
+                srv_m = self.server_mono(srv, dec)
+                out["device_to_server_ms"] = (srv_m - send) * 1e3
+                out["server_to_decode_ms"] = (dec - srv_m) * 1e3
+        out["gc_in_window"] = [(round((t - send) * 1e3, 2), round(d * 1e3, 2), g) for t, d, g in self.gc
+                               if t + d >= send and t <= intake]
+        return out
 
 
 def join_intake(log, intake, modulus):
@@ -178,6 +247,8 @@ def run_one(name, link, duration, tmp, corrupt_rate=0.0, seed=1):
     listener = None
     crashed = None
     t_start = time.monotonic()
+    hops = HopRecorder()
+    gc.callbacks.append(hops.gc_callback)
     try:
         if link == "serial":
             rx = Receiver(1 << 16, None)
@@ -192,7 +263,7 @@ def run_one(name, link, duration, tmp, corrupt_rate=0.0, seed=1):
             children.append(server)
             port = int(server.expect("listening on").rsplit(":", 1)[1])
             config = BusConfig("socketcand", "vcan0", {"host": "127.0.0.1", "port": port})
-            source = CanSource(config).start(wait_open=10)
+            source = CanSource(config, decoder=hops.wrap(CanDecoder())).start(wait_open=10)
             rx.publish = source.publish
             listener = Child([PY, "-c", LISTENER, str(port)])
             children.append(listener)
@@ -227,6 +298,8 @@ def run_one(name, link, duration, tmp, corrupt_rate=0.0, seed=1):
                 if len(parts) == 2:
                     bus_estimates.setdefault(int(parts[0]), []).append(int(parts[1]) * 1e-9)
     finally:
+        gc.callbacks.remove(hops.gc_callback)
+        hops.finish()
         for c in reversed(children):
             c.stop()
     with open(report_path) as fh:
@@ -275,6 +348,12 @@ def run_one(name, link, duration, tmp, corrupt_rate=0.0, seed=1):
             if later:
                 close_lat.append(min(later) - send[j])
     errs = np.array(errs)
+    seqs = log["seq"][sel]
+    late = np.flatnonzero(delivered & (status == SENT))
+    worst = late[np.argsort(-(intake - send)[late])[:3]] if late.size else []
+    slowest = [hops.explain(float(send[i]), float(intake[i]), int(seqs[i]), modulus) for i in worst]
+    for w in slowest:
+        w["send_s"] = round(w["send_s"] - float(np.nanmin(send)), 3)  # since the first frame sent
     return {
         "run": name,
         "link": link,
@@ -306,6 +385,8 @@ def run_one(name, link, duration, tmp, corrupt_rate=0.0, seed=1):
         "cycles_estimated": len(ok),
         "estimates_from_damaged_windows": windows_bad,
         "slip_rmse": float(np.sqrt(np.mean(errs ** 2))) if errs.size else math.nan,
+        "slowest_frames": slowest,
+        "gc_pauses": {"n": len(hops.gc), "max_ms": max((d for _, d, _ in hops.gc), default=0.0) * 1e3},
     }
 
 
@@ -328,6 +409,13 @@ def print_run(r):
     c = r["closing_sample_to_estimate_ms"]
     print(f"  closing sample sent -> estimate {c['where']}: median {c['median']:.2f} ms, p99 {c['p99']:.2f} ms, "
           f"max {c['max']:.1f} ms (n={c['n']})  [target < 5 ms]")
+    for w in r["slowest_frames"]:
+        hop = (f", device -> server {w['device_to_server_ms']:.2f} ms, server -> intake "
+               f"{w['server_to_decode_ms']:.2f} ms" if "device_to_server_ms" in w else "")
+        print(f"  slow frame at {w['send_s']:.3f} s: {w['latency_ms']:.2f} ms{hop}; "
+              f"this process's GC during it (start ms, duration ms, generation): {w['gc_in_window'] or 'none'}")
+    g = r["gc_pauses"]
+    print(f"  this process's garbage collections of 2 ms or more: {g['n']}, longest {g['max_ms']:.1f} ms")
     dl = r["device_lateness"]
     if dl.get("n"):
         print(f"  (device pacing lateness: median {dl['median_ms']:.3f} ms, p99 {dl['p99_ms']:.3f} ms)")
