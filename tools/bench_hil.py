@@ -74,7 +74,7 @@ print("ready", flush=True)
 while True:
     m = bus.recv(0.5)
     if m is not None and 0x110 <= m.arbitration_id <= 0x115:
-        print(m.data[7], time.monotonic_ns(), flush=True)
+        print(m.data[7], time.monotonic_ns(), repr(m.timestamp), flush=True)
 """
 
 
@@ -295,8 +295,10 @@ def run_one(name, link, duration, tmp, corrupt_rate=0.0, seed=1):
         if listener is not None:
             for line in listener.lines():
                 parts = line.split()
-                if len(parts) == 2:
-                    bus_estimates.setdefault(int(parts[0]), []).append(int(parts[1]) * 1e-9)
+                if len(parts) == 3:  # cycle mod 256, arrival [ns monotonic], server stamp [s wall clock]
+                    arrival = int(parts[1]) * 1e-9
+                    bus_estimates.setdefault(int(parts[0]), []).append((arrival, hops.server_mono(float(parts[2]),
+                                                                                                   arrival)))
     finally:
         gc.callbacks.remove(hops.gc_callback)
         hops.finish()
@@ -324,6 +326,7 @@ def run_one(name, link, duration, tmp, corrupt_rate=0.0, seed=1):
     ok = [(e, ready) for e, ready in rx.estimates if e.quality == "ok" and 0 <= e.cycle]
     windows_bad = 0
     close_lat = []
+    close_parts = []  # CAN: (total, closing sample sent -> estimate ready, ready -> server, server -> listener) [s]
     errs = []
     for e, ready in ok:
         k = e.cycle
@@ -344,9 +347,11 @@ def run_one(name, link, duration, tmp, corrupt_rate=0.0, seed=1):
         if link == "serial":
             close_lat.append(ready - send[j])
         else:
-            later = [a for a in bus_estimates.get(e.cycle % 256, []) if a >= send[j]]
+            later = [(a, srv) for a, srv in bus_estimates.get(e.cycle % 256, []) if a >= send[j]]
             if later:
-                close_lat.append(min(later) - send[j])
+                a, srv = min(later)
+                close_lat.append(a - send[j])
+                close_parts.append((a - send[j], ready - send[j], srv - ready, a - srv, e.cycle))
     errs = np.array(errs)
     seqs = log["seq"][sel]
     late = np.flatnonzero(delivered & (status == SENT))
@@ -354,6 +359,7 @@ def run_one(name, link, duration, tmp, corrupt_rate=0.0, seed=1):
     slowest = [hops.explain(float(send[i]), float(intake[i]), int(seqs[i]), modulus) for i in worst]
     for w in slowest:
         w["send_s"] = round(w["send_s"] - float(np.nanmin(send)), 3)  # since the first frame sent
+    streaming_gc = [d for t, d, _ in hops.gc if t >= np.nanmin(send)]
     return {
         "run": name,
         "link": link,
@@ -386,7 +392,10 @@ def run_one(name, link, duration, tmp, corrupt_rate=0.0, seed=1):
         "estimates_from_damaged_windows": windows_bad,
         "slip_rmse": float(np.sqrt(np.mean(errs ** 2))) if errs.size else math.nan,
         "slowest_frames": slowest,
-        "gc_pauses": {"n": len(hops.gc), "max_ms": max((d for _, d, _ in hops.gc), default=0.0) * 1e3},
+        "slowest_estimate_ms": (dict(zip(("total", "to_ready", "ready_to_server", "server_to_listener", "cycle"),
+                                         [round(v * 1e3, 3) for v in max(close_parts)[:4]] + [max(close_parts)[4]]))
+                                if close_parts else None),
+        "gc_pauses_while_streaming": {"n": len(streaming_gc), "max_ms": max(streaming_gc, default=0.0) * 1e3},
     }
 
 
@@ -414,8 +423,12 @@ def print_run(r):
                f"{w['server_to_decode_ms']:.2f} ms" if "device_to_server_ms" in w else "")
         print(f"  slow frame at {w['send_s']:.3f} s: {w['latency_ms']:.2f} ms{hop}; "
               f"this process's GC during it (start ms, duration ms, generation): {w['gc_in_window'] or 'none'}")
-    g = r["gc_pauses"]
-    print(f"  this process's garbage collections of 2 ms or more: {g['n']}, longest {g['max_ms']:.1f} ms")
+    se = r.get("slowest_estimate_ms")
+    if se:
+        print(f"  slowest estimate (cycle {se['cycle']}): {se['total']:.2f} ms = closing sample sent -> estimate ready {se['to_ready']:.2f} ms"
+              f" + publish -> server {se['ready_to_server']:.2f} ms + server -> listener {se['server_to_listener']:.2f} ms")
+    g = r["gc_pauses_while_streaming"]
+    print(f"  this process's garbage collections of 2 ms or more while streaming: {g['n']}, longest {g['max_ms']:.1f} ms")
     dl = r["device_lateness"]
     if dl.get("n"):
         print(f"  (device pacing lateness: median {dl['median_ms']:.3f} ms, p99 {dl['p99_ms']:.3f} ms)")
