@@ -158,41 +158,6 @@ def marginal_from_rows(dmat, sel, base, n, nodes, ps):
 
 
 @numba.njit(cache=True, fastmath=True)
-def marginal_from_cells(tp, fw, lp, sel, base, n, nodes, ps, acc, buf):
-    """Add ``sum_i exp(base[i] + d(sel[i], k))`` (by :func:`fexp`) to ``ps[nodes[k]]`` for every node ``k`` of ``tp``.
-
-    ``tp``: ``(S, D, Kp)`` float32 **per-cell** table of the nodes
-    ``nodes`` (one contiguous block per cell: only the selected cells are
-    read), padded to ``Kp >= nodes.size`` (a multiple of 8: the loops over
-    the nodes then vectorise) with ``lp`` very negative on the padding,
-    whose sums are dropped; ``lp``: ``(Kp,)`` float32 log prior of the
-    nodes; ``sel``, ``base``, ``n``: from :func:`select_cells`. Scratch:
-    ``acc`` ``(Kp,)`` float64, ``buf`` ``(Kp,)`` float32. The sums over the
-    cells run in cell order, in float64.
-    """
-    S, D, Kp = tp.shape
-    for k in range(Kp):
-        acc[k] = 0.0
-    for i in range(n):
-        t = tp[sel[i]]
-        for k in range(Kp):
-            buf[k] = np.float32(0.0)
-        for j in range(D):
-            fj = fw[j]
-            tj = t[j]
-            for k in range(Kp):
-                e = tj[k] - fj
-                buf[k] += e * e
-        b = base[i]
-        # separate loops: one loop reading the table rows and updating acc has too many pointers
-        # to check for overlap, and does not vectorise
-        for k in range(Kp):
-            acc[k] += fexp(b + (np.float32(-0.5) * buf[k] + lp[k]))
-    for k in range(nodes.size):
-        ps[nodes[k]] += acc[k]
-
-
-@numba.njit(cache=True, fastmath=True)
 def node_moments(ps, x, quant):
     """Mean and standard deviation of the nodes ``x`` under the weights ``ps`` (normalised here).
 
