@@ -25,7 +25,7 @@ import numpy as np
 
 from firmware_sim.device import KIND_IMU, FrameTable, LinkDown
 from slipest.io.bus_args import BusConfig, ReconnectingBus
-from slipest.io.can_messages import base_id, encode_imu, encode_slip_reference
+from slipest.io.can_messages import base_id, encode_imu, encode_slip_reference, load_tables
 
 #: 11-bit IDs the DBC uses (0x110-0x135); unknown-ID bursts avoid them.
 _OUR_IDS = range(0x110, 0x136)
@@ -56,6 +56,7 @@ class CanLink:
         self.wait = wait
         self.drain = drain
         self.bus = ReconnectingBus(config, on_event=self.announce)
+        load_tables()  # not on the first frame's pacing
         self.received = 0  # messages others sent (drained)
         self._down = False
         self._stop = threading.Event()

@@ -264,3 +264,12 @@ def test_messages_travel_over_a_python_can_bus():
     assert [r.wheel for r in got[:6]] == list(range(6))
     assert got[6].slip == pytest.approx(0.2) and got[6].quality == 1
     assert all(r.timestamp > 0 for r in got)  # reception time from the bus
+
+
+def test_decoder_builds_the_dbc_tables_up_front():
+    # built lazily, the tables cost the first decoded frame ~15 ms of latency (found by tools/bench_hil.py)
+    from slipest.io import can_messages
+
+    can_messages._table.cache_clear()
+    can_messages.CanDecoder()
+    assert can_messages._table.cache_info().currsize == 1
