@@ -23,6 +23,7 @@ development used other seeds.
 
     python tools/bench_accuracy.py                 # 12 runs x 4 soils x 25 cycles, ~15 s
     python tools/bench_accuracy.py --runs 2 --seed 7
+    python tools/bench_accuracy.py --seed 11 --grid 15,13,11   # a development seed, another soil grid
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ from tqdm import tqdm
 from slipest.features import INDEX, cycle_features
 from slipest.inverse.eq515 import Eq515Inverse
 from slipest.inverse.simdata import RANGES
-from slipest.inverse.surrogate import SurrogateInverse, load_inverse_model
+from slipest.inverse.surrogate import SoilGrid, SurrogateInverse, load_inverse_model
 from slipest.model.params import StickSlipParams
 from slipest.model.scenario import Scenario
 from slipest.model.stream import iter_stream
@@ -148,6 +149,8 @@ def main(argv=None) -> int:
     ap.add_argument("--slip-temper", type=float, help="estimator option (default: the estimator's)")
     ap.add_argument("--forget", type=float, help="estimator option (default: the estimator's)")
     ap.add_argument("--n-dims", type=int, help="estimator option (default: the estimator's)")
+    ap.add_argument("--grid", metavar="K,P,D", help="soil grid: numbers of kS, phiD and dphi levels over the spec's "
+                    "ranges (default: SoilGrid.default(), 11,10,31)")
     args = ap.parse_args(argv)
     eq = Eq515Inverse.from_calibration()
     model = load_inverse_model(args.model) if args.model else None
@@ -156,6 +159,9 @@ def main(argv=None) -> int:
     opts = {k: v for k, v in (("hazard", args.hazard), ("soil_temper", args.soil_temper),
                               ("slip_temper", args.slip_temper), ("forget", args.forget), ("n_dims", args.n_dims))
             if v is not None}
+    if args.grid:
+        k, p, d = (int(x) for x in args.grid.split(","))
+        opts["grid"] = SoilGrid(np.linspace(*RANGES["kS"], k), np.linspace(*RANGES["phiD"], p), np.linspace(*RANGES["dphi"], d))
     rows = [run_one(args.seed * 1000 + r, args.soils, args.cycles_per_soil, args.noise, args.rate, eq, surro, opts, model)
             for r in tqdm(range(args.runs), desc="runs", file=sys.stderr)]
     out = summarise(rows)
