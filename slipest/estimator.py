@@ -146,14 +146,14 @@ DEFAULT_SLIP_TEMPER = 0.4
 
 
 @numba.njit(cache=True, fastmath=True)
-def _cycle_step(w, prior, hazard, soil_temper, forget, cutoff, node_width, table, fw, lp, node_idx, nodes, node_quant,
+def _cycle_step(w, prior, hazard, soil_temper, forget, cutoff, node_width, table, fw, lp, nodes, node_quant,
                 ref_k, ref_a, skip, summary_x, summary_q, dmat, f32s, f64s, sel, ps, out):
     """One cycle of the grid filter, in place on the weights ``w`` (the soil posterior over the cells).
 
     predict (hazard mixing with the prior), cell likelihoods on the slip
     nodes ``nodes`` [-] (``table``: columnar ``(D, K, S)``; ``lp``: their
     log prior; ``node_width``: their spacing [-]), slip marginal on the same
-    nodes over the cells that matter (``node_idx``: ``arange(K)``),
+    nodes over the cells that matter,
     run-length-1 change probability, tempered update (by the reference
     slip's likelihood when ``ref_k >= 0``: between nodes ``ref_k`` and
     ``ref_k + 1`` at fraction ``ref_a``; the prior weights raised to
@@ -189,7 +189,7 @@ def _cycle_step(w, prior, hazard, soil_temper, forget, cutoff, node_width, table
     base = f32s[2]
     n = select_cells(lw, lc, cutoff, sel, base)
     ps[:] = 0.0
-    marginal_from_rows(dmat, sel, base, n, node_idx, ps)
+    marginal_from_rows(dmat, sel, base, n, ps)
     out[0], out[1] = node_moments(ps, nodes, node_quant)
     out[2] = change
     if not skip:
@@ -310,7 +310,6 @@ class SoilSlipEstimator:
             # the slip nodes (every NODE_STRIDE-th), as a columnar (D, K, S) table
             picked = np.arange(0, K, NODE_STRIDE)
             self._nodes = SLIP_NODES[picked]
-            self._node_idx = np.arange(picked.size)
             self._node_width = float(self._nodes[1] - self._nodes[0])
             self._table = np.ascontiguousarray(table[:, :, picked].transpose(1, 2, 0))  # (D, K, S)
             self._lp = np.ascontiguousarray(slip_prior(self._nodes).astype(np.float32))
@@ -371,7 +370,7 @@ class SoilSlipEstimator:
     def _step(self, w, fw, hazard: float, ref_k: int, ref_a: float, skip: bool) -> np.ndarray:
         """Run the compiled cycle step on the weights ``w`` (in place); returns the ``out`` row of :func:`_cycle_step`."""
         _cycle_step(w, self._prior, hazard, self.soil_temper, self.forget, SLIP_CUTOFF, self._node_width, self._table,
-                    fw, self._lp, self._node_idx, self._nodes, self._node_quant, ref_k, ref_a, skip, self._summary_x,
+                    fw, self._lp, self._nodes, self._node_quant, ref_k, ref_a, skip, self._summary_x,
                     self._summary_q, self._dmat, self._f32s, self._f64s, self._sel, self._ps, self._out)
         return self._out
 

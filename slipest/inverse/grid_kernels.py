@@ -143,8 +143,8 @@ def select_cells(logw, lc, cutoff, sel, base):
 
 
 @numba.njit(cache=True, fastmath=True)
-def marginal_from_rows(dmat, sel, base, n, nodes, ps):
-    """Add ``sum_i exp(base[i] + dmat[k, sel[i]])`` (by :func:`fexp`) to ``ps[nodes[k]]`` for every row ``k``.
+def marginal_from_rows(dmat, sel, base, n, ps):
+    """Add ``sum_i exp(base[i] + dmat[k, sel[i]])`` (by :func:`fexp`) to ``ps[k]`` for every row ``k``.
 
     ``dmat``: ``(K, S)`` float32 values ``d(s, k)`` already computed (by
     :func:`grid_loglik`); ``sel``, ``base``, ``n``: from :func:`select_cells`.
@@ -154,7 +154,7 @@ def marginal_from_rows(dmat, sel, base, n, nodes, ps):
         acc = 0.0
         for i in range(n):
             acc += fexp(base[i] + row[sel[i]])
-        ps[nodes[k]] += acc
+        ps[k] += acc
 
 
 @numba.njit(cache=True, fastmath=True)

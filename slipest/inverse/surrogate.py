@@ -42,7 +42,7 @@ import numpy as np
 
 from slipest.features import FEATURE_NAMES
 from slipest.inverse.base import SlipInverse, Soil
-from slipest.inverse.grid_kernels import grid_loglik, marginal_from_rows, select_cells
+from slipest.inverse.grid_kernels import grid_loglik, marginal_from_rows, node_moments, select_cells
 from slipest.json_files import read_json
 
 #: Version of the inverse model file format.
@@ -368,16 +368,6 @@ def slip_prior(nodes, hi: float = 0.5, tail: float = 4.0) -> np.ndarray:
     return np.where(nodes <= hi + 1e-9, 0.0, -float(tail))
 
 
-def moments(p, x) -> tuple[float, float]:
-    """Mean and standard deviation of ``x`` under weights ``p`` (normalised here)."""
-    p = np.asarray(p, dtype=float)
-    tot = p.sum()
-    if not tot > 0:
-        return math.nan, math.nan
-    m = float((p * x).sum() / tot)
-    return m, math.sqrt(max(float((p * (x - m) ** 2).sum() / tot), 0.0))
-
-
 # ---------------------------------------------------------------------- the inverse
 
 
@@ -483,8 +473,7 @@ class SurrogateInverse(SlipInverse):
         r = (f - mu) @ self._W
         ll = -0.5 * np.sum(r * r, axis=1) + self._lp_fine
         p = np.exp(ll - ll.max())
-        m, s = moments(p, self._fine)
-        return m, math.sqrt(s * s + 0.0025**2 / 12)
+        return node_moments(p, self._fine, 0.0025**2 / 12)
 
     def soil_logprior(self, soil: Soil | None) -> np.ndarray:
         """Log prior over the grid cells: uniform, restricted (Gaussian, one grid step wide) to known soil parts."""
@@ -519,6 +508,5 @@ class SurrogateInverse(SlipInverse):
         base = np.empty(S, dtype=np.float32)
         n = select_cells(self.soil_logprior(soil), lc, 20.0, sel, base)
         ps = np.zeros(K)
-        marginal_from_rows(dmat, sel, base, n, np.arange(K), ps)
-        m, s = moments(ps, SLIP_NODES)
-        return m, math.sqrt(s * s + 0.01**2 / 12)
+        marginal_from_rows(dmat, sel, base, n, ps)
+        return node_moments(ps, SLIP_NODES, 0.01**2 / 12)
