@@ -140,12 +140,10 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=1, help="bare/instrumented rounds (default 1)")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="slipest-lat-") as tmp:
-        log = Path(args.log) if args.log else Path(tmp) / "log_10min.csv"
-        if not args.log:
-            sys.path.insert(0, str(Path(__file__).resolve().parent))
-            from bench_replay import write_log
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from bench_replay import log_or_default
 
-            write_log(log, 600.0, 1)
+        log = log_or_default(args.log, tmp)
         with LogReader(log) as r:
             d = r.read_all()
     n = 150_000 if args.quick else d.t.size

@@ -69,6 +69,15 @@ def write_log(path: Path, seconds: float, seed: int) -> int:
     return rows
 
 
+def log_or_default(log: str | None, tmp: str) -> Path:
+    """The log ``log`` names, or (None) the 10-minute benchmark log (seed 1), written into the folder ``tmp``."""
+    if log:
+        return Path(log)
+    path = Path(tmp) / "log_10min.csv"
+    write_log(path, 600.0, 1)
+    return path
+
+
 def replay_in_process(log: Path, out: Path) -> float:
     from slipest.cli.main import main
 

@@ -20,7 +20,6 @@ rounding of the compiled kernels).
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import tempfile
 from pathlib import Path
@@ -98,12 +97,10 @@ def main(argv=None) -> int:
     ap.add_argument("--tol", type=float, default=1e-4, help="largest allowed difference of slip and dphi (default 1e-4)")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="slipest-check-") as tmp:
-        log = Path(args.log) if args.log else Path(tmp) / "log_10min.csv"
-        if not args.log:
-            sys.path.insert(0, str(Path(__file__).resolve().parent))
-            from bench_replay import write_log
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from bench_replay import log_or_default
 
-            write_log(log, 600.0, 1)
+        log = log_or_default(args.log, tmp)
         res = run(log)
     print(f"push and push_many identical ({res['default/cycle'].size} estimates)")
     if args.save:
