@@ -134,6 +134,17 @@ def summarise(all_rows):
     return out
 
 
+def grid_levels(text: str) -> tuple[int, int, int]:
+    """``--grid K,P,D``: three level counts, each at least 2."""
+    try:
+        levels = tuple(int(x) for x in text.split(","))
+    except ValueError:
+        levels = ()
+    if len(levels) != 3 or min(levels) < 2:
+        raise argparse.ArgumentTypeError(f"expected three level counts >= 2 like 11,10,31, got {text!r}")
+    return levels
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", type=int, default=12)
@@ -149,8 +160,9 @@ def main(argv=None) -> int:
     ap.add_argument("--slip-temper", type=float, help="estimator option (default: the estimator's)")
     ap.add_argument("--forget", type=float, help="estimator option (default: the estimator's)")
     ap.add_argument("--n-dims", type=int, help="estimator option (default: the estimator's)")
-    ap.add_argument("--grid", metavar="K,P,D", help="soil grid: numbers of kS, phiD and dphi levels over the spec's "
-                    "ranges (default: SoilGrid.default(), 11,10,31)")
+    ap.add_argument("--grid", metavar="K,P,D", type=grid_levels,
+                    help="soil grid: numbers of kS, phiD and dphi levels over the spec's ranges, each >= 2 "
+                    "(default: SoilGrid.default(), 11,10,31)")
     args = ap.parse_args(argv)
     eq = Eq515Inverse.from_calibration()
     model = load_inverse_model(args.model) if args.model else None
@@ -160,7 +172,7 @@ def main(argv=None) -> int:
                               ("slip_temper", args.slip_temper), ("forget", args.forget), ("n_dims", args.n_dims))
             if v is not None}
     if args.grid:
-        k, p, d = (int(x) for x in args.grid.split(","))
+        k, p, d = args.grid
         opts["grid"] = SoilGrid(np.linspace(*RANGES["kS"], k), np.linspace(*RANGES["phiD"], p), np.linspace(*RANGES["dphi"], d))
     rows = [run_one(args.seed * 1000 + r, args.soils, args.cycles_per_soil, args.noise, args.rate, eq, surro, opts, model)
             for r in tqdm(range(args.runs), desc="runs", file=sys.stderr)]
