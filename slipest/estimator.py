@@ -1,115 +1,41 @@
-"""The recursive slip and soil estimator (pure computation): one leg cycle's features at a time.
+"""The recursive slip and soil estimator of the default method (pure computation).
 
-What is observable from what (this model, IMU noise 0.01 g at 1 kHz)
---------------------------------------------------------------------
-* One cycle's features (:mod:`slipest.features`) depend on slip **and**
-  soil. The break-away angle (``onset``) is the strongest carrier: it moves
-  with slip, ``kS`` and ``phiS`` together; the oscillation frequency
-  carries ``kS``; the amplitude and its growth over the stance carry
-  ``dphi`` together with slip and ``kS``. With the soil known one cycle
-  gives slip to about 0.015-0.02 (held-out RMSE); with the soil unknown
-  about 0.06, because a different soil explains the same cycle with another
-  slip.
-* The soil is shared by the cycles driven on it while slip changes, so the
-  soil becomes identifiable **jointly** from several cycles at different
-  slips; slip per cycle then gets to about 0.03 after ~10 cycles. It does
-  not reach the soil-known figure, and the reason is a ridge: ``onset``
-  moves with slip, ``kS`` and ``phiS`` together, so a soil one grid step
-  off along that ridge (0.025 rad in ``phiD``) explains the cycles with a
-  slip about 0.03 off, and only the noisier amplitude and frequency
-  features tell them apart. Measured on development draws: with the soil
-  posterior after 25 cycles, slip on its most probable cell is 2-5 times
-  worse than on the true soil, while the posterior mean of the soil is
-  within one standard deviation of the truth. What helped (each measured
-  on two development seeds): every whitened feature direction rather than
-  the 8 strongest, a degree-14 surrogate (degree 8 leaves a lack of fit
-  of about 0.25 noise standard deviations per feature, degree 12 about
-  0.15), a slip tempering of 0.4, and, once the surrogate was that good,
-  a finer ``dphi`` axis of the soil grid (31 levels, 0.0117 rad apart,
-  instead of 11: slip 0.028 / 0.027 / 0.025 on seeds 11 / 7 / 3 became
-  0.025 / 0.023 / 0.025; finer ``kS`` and ``phiD`` axes gained nothing,
-  see :meth:`~slipest.inverse.surrogate.SoilGrid.default`). What did not:
-  lighter soil tempering, a smaller hazard, a residual covariance that
-  varies with slip and soil.
-* Not observable: the soil, while the wheel does not stick-slip (slip near
-  0 on a soil with ``phiS`` above about 0.5 rad: no break-away, ``Da`` about
-  0.015 g, flat features). The surrogate's small errors there would still
-  single out a soil, so a cycle with no break-away detected (``onset`` at
-  the end of the window) does **not** update the soil: its posterior only
-  widens with the change hazard, and ``dphi`` keeps a large standard
-  deviation instead of a confident wrong number (tested). Its slip is
-  estimated as usual (near 0). With slip held constant the soil and slip
-  are confounded (a different soil explains the same cycles with another
-  slip): the soil sharpens only when slip varies between cycles, and until
-  then the standard deviations stay wide. ``phiD`` alone is weakly
-  observable; it is reported through ``dphi`` and ``phiS``.
+:class:`SoilSlipEstimator` takes one leg cycle's feature row at a time
+(:mod:`slipest.features`) and returns slip with its standard deviation and
+the soil ``(kS, phiS, phiD, dphi)`` learnt so far, with theirs
+(:class:`~slipest.cycle_estimator.CycleEstimate`). The soil is a state on a
+grid of cells (:class:`~slipest.inverse.surrogate.SoilGrid`) filtered by a
+point-mass Bayes filter; slip is a new unknown every cycle, marginalised on
+slip nodes; the measurement model is the feature surrogate
+(:class:`~slipest.inverse.surrogate.FeatureSurrogate`). Per cycle:
 
-How (the recursion)
--------------------
-The soil ``(kS, phiD, dphi)`` is a slowly varying state on a grid of cells
-(:class:`slipest.inverse.surrogate.SoilGrid`, 3410 cells), filtered by a
-point-mass (discrete) Bayes filter (the update of
-:func:`filterpy.discrete_bayes.update`, written out and compiled with the
-rest of the cycle: filterpy's own normalisation sums in Python and alone
-cost 0.3 ms a cycle); slip is a new unknown every cycle, marginalised on a
-grid of slip nodes. Per cycle (:func:`_cycle_step`, compiled, on the kernels of
-:mod:`slipest.inverse.grid_kernels`: about 0.3 ms with its tables in the CPU
-caches, 0.4-0.6 ms from memory, hence :meth:`SoilSlipEstimator.prefetch`):
+1. predict: with probability ``hazard`` the soil changed (mixed with the
+   prior); ``change_prob`` is the posterior probability that it did;
+2. slip: posterior over slip nodes 0.02 apart, marginalised over the cells
+   that hold the mass; likelihood ``N(f; mu(slip, soil), R / slip_temper)``;
+3. soil update: the weights raised to ``forget``, times the cycle's soil
+   likelihood (slip marginalised, or at the reference slip when one is given
+   and ``use_reference`` is on) raised to ``soil_temper``; a cycle with no
+   break-away detected (``onset`` at the end of the window) carries no soil
+   information and does not update the soil.
 
-1. *predict*: the soil may have changed: with probability ``hazard`` the
-   soil is redrawn from the prior (mixing with it keeps every cell
-   reachable, so after a change the filter re-acquires in a few cycles
-   instead of staying confidently wrong); ``change_prob`` reports the
-   posterior probability that the soil changed at this cycle (a Bayesian
-   run-length-1 change detector on the innovation).
-2. *slip*: ``p(slip | all cycles) ~ sum_cells w(cell) p(f | slip, cell)``
-   with the measurement model ``f ~ N(mu(slip, soil), R / slip_temper)``
-   (:class:`~slipest.inverse.surrogate.FeatureSurrogate`), on slip nodes
-   0.02 apart (:data:`NODE_STRIDE`) over the cells that hold the mass; the
-   estimate is its mean, the standard deviation its spread.
-3. *soil update*: ``w(cell) *= p(f | cell)^soil_temper`` (slip
-   marginalised), or ``p(f | slip_ref, cell)^soil_temper`` when a reference
-   slip is given and ``use_reference`` is on (the thesis's way of learning
-   the soil, but from every feature, not ``Da`` alone). The exponent
-   ``soil_temper < 1`` accounts for the surrogate's error being the same on
-   consecutive cycles of one soil (it is not independent noise); without it
-   the soil posterior becomes overconfident (measured in development on
-   training draws: 95 % intervals covering about 60 % of ``dphi``).
-   Tempering alone still lets the evidence grow without bound, and the
-   surrogate's error does not average out over cycles: at constant slip,
-   100 cycles walked the soil along the ridge (``phiS`` and ``phiD`` both
-   0.05 rad high, to the edge of the grid) and slip 0.066 high, with 95 %
-   intervals covering 18 %. So the posterior is also *forgotten*: before
-   each update the weights are raised to ``forget`` (0.9), which bounds the
-   accumulated evidence at about ``1 / (1 - forget)`` = 10 cycles'
-   worth. The same run then gives slip 0.056 high with intervals covering
-   100 %, and the accuracy with slip varying is unchanged (development
-   seeds 11/7/3, degree-12 surrogate: 0.029/0.028/0.027 from the 10th
-   cycle with forgetting, 0.028/0.028/0.026 without). With the current
-   surrogate and grid (31 ``dphi`` levels) that run (slip 0.3, 100
-   cycles) gives slip 0.026 high with intervals covering 100 %, and 0.041
-   high covering 42 % without forgetting.
+Limits: the model's geometry and leg speed (``model_legs``,
+``model_omega``); slip 0-0.5 and the soil ranges of the model
+(``FeatureSurrogate.ranges``). One cycle step takes about 0.3-0.6 ms
+(compiled; :meth:`SoilSlipEstimator.prefetch` warms its 6 MB table first).
+Why it is built this way, and what was tried: ``docs/estimator.md``.
 
-Why not an EKF/UKF over the soil: ``mu`` is a rough, partly multimodal
-function of the soil, and the soil is unknown over its whole range at the
-start and after every change. An EKF over (kS, phiD, dphi) with the slip
-marginalised the same way (tried on training draws) needed about 20 cycles
-to get slip within 0.03 and its 95 % intervals covered 60-80 %; the grid
-filter gets there in about 10 with calibrated intervals. ``Eq515Tracker`` (:mod:`slipest.inverse.eq515`), the
-thesis's method, is a 1-state filterpy ``KalmanFilter`` on ``dphi``.
-
-Units: slip [-], kS [N/m], phiS, phiD, dphi [rad]; every estimate comes
-with its standard deviation.
+Units: slip [-], kS [N/m], phiS, phiD, dphi [rad].
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numba
 import numpy as np
 
+from slipest.cycle_estimator import CycleEstimate, CycleEstimator
 from slipest.features import FEATURE_NAMES, INDEX
 from slipest.inverse.base import Soil
 from slipest.inverse.grid_kernels import (
@@ -123,21 +49,17 @@ from slipest.inverse.grid_kernels import (
 )
 from slipest.inverse.surrogate import SLIP_NODES, FeatureSurrogate, SoilGrid, SurrogateInverse, load_inverse_model, slip_prior
 
-#: The recursive estimator marginalises slip over every NODE_STRIDE-th slip node of ``SLIP_NODES``
-#: (0.02 apart), for the soil update and the slip estimate alike: a Riemann sum of a Gaussian of
-#: standard deviation sigma is exact to ~1 % down to a step of 2 sigma, and a cycle's slip
-#: likelihood on one soil is about 0.015 wide (0.024 after the slip tempering). Adding the nodes
-#: in between for the slip estimate (0.01 apart) changed slip RMSE by < 0.0003 on development
-#: seeds 11 / 7 / 3 and cost up to 0.3 ms a cycle when the soil posterior is broad.
+#: Slip is marginalised on every NODE_STRIDE-th node of ``SLIP_NODES`` (0.02 apart), for the soil
+#: update and the slip estimate alike (docs/estimator.md: why this spacing suffices).
 NODE_STRIDE = 2
-#: Cells whose joint weight is below the best one's by more than this (log) are left out of the
+#: Cells whose joint log weight is below the best one's by more than this [nats] are left out of the
 #: slip estimate (each holds less than exp(-15) = 3e-7 of the best one's mass).
 SLIP_CUTOFF = 15.0
 _ONSET = INDEX["onset"]
 
 #: Default probability per cycle that the soil changed [-].
 DEFAULT_HAZARD = 0.01
-#: Default tempering of a cycle's soil likelihood [-] (see module docstring).
+#: Default tempering of a cycle's soil likelihood [-] (docs/estimator.md).
 DEFAULT_SOIL_TEMPER = 0.3
 #: Default forgetting of the soil posterior per update [-] (1: none; see module docstring).
 DEFAULT_FORGET = 0.9
@@ -223,40 +145,12 @@ def _cycle_step(w, prior, hazard, soil_temper, forget, cutoff, node_width, table
     weighted_moments(w, summary_x, summary_q, out[3:])
 
 
-@dataclass(frozen=True)
-class CycleEstimate:
-    """The estimator's output for one cycle (SI; ``*_std``: standard deviations).
-
-    slip [-]; kS [N/m]; phiS, phiD, dphi [rad] (the soil posterior after
-    this cycle); change_prob: posterior probability that the soil changed
-    at this cycle [-]; used_reference: the reference slip updated the soil.
-    """
-
-    slip: float
-    slip_std: float
-    dphi: float
-    dphi_std: float
-    kS: float
-    kS_std: float
-    phiS: float
-    phiS_std: float
-    phiD: float
-    phiD_std: float
-    change_prob: float
-    used_reference: bool
-
-    @classmethod
-    def nan(cls) -> "CycleEstimate":
-        n = math.nan
-        return cls(n, n, n, n, n, n, n, n, n, n, n, False)
-
-
 #: Fields of :class:`CycleEstimate` that :meth:`SoilSlipEstimator.update_batch` returns as arrays.
 BATCH_FIELDS = ("slip", "slip_std", "dphi", "dphi_std", "kS", "kS_std", "phiS", "phiS_std", "phiD", "phiD_std",
                 "change_prob", "used_reference")
 
 
-class SoilSlipEstimator:
+class SoilSlipEstimator(CycleEstimator):
     """Slip every cycle and the soil as it goes, from feature rows (see the module docstring).
 
     model: the feature surrogate (default: the shipped one).
@@ -266,7 +160,7 @@ class SoilSlipEstimator:
     use_reference: learn the soil from the reference slips given to
         :meth:`update` (else they are ignored).
     hazard: probability per cycle that the soil changed [-].
-    soil_temper, slip_temper: likelihood exponents (see module docstring).
+    soil_temper, slip_temper: likelihood exponents (docs/estimator.md).
     forget: exponent applied to the soil posterior before each update (1: no forgetting) [-].
     grid: the soil grid (default :meth:`SoilGrid.default`).
     n_legs: legs of the wheel-leg (sets the end of the window, ``pi/nL``,
@@ -292,6 +186,8 @@ class SoilSlipEstimator:
         if not (0.0 < soil_temper <= 1.0 and 0.0 < slip_temper <= 1.0 and 0.0 < forget <= 1.0):
             raise ValueError("soil_temper, slip_temper and forget must be in (0, 1]")
         self.model = model or load_inverse_model()
+        self.model_legs = self.model.n_legs
+        self.model_omega = self.model.omega
         self.inverse = SurrogateInverse(self.model, grid, n_dims=n_dims)
         self.grid = self.inverse.grid
         self.soil = soil

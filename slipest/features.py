@@ -157,11 +157,18 @@ def bin_mean_fill(acc, cnt):
         acc[g] = acc[last] if last >= 0 else 0.0
 
 
-@numba.njit(cache=True)
-def _row_features(phase, a, half, omega, n_grid, out):
-    """Features of one cycle. phase [rad] sorted; a [g]; out: one row, written in place."""
+# Column of each feature in a row, as compile-time constants of the kernels below.
+_DELTA_A, _PEAK_POS, _PEAK_NEG, _RMS = INDEX["delta_a"], INDEX["peak_pos"], INDEX["peak_neg"], INDEX["rms"]
+_RMS_Q1, _ONSET, _ENERGY_Q10 = INDEX["rms_q1"], INDEX["onset"], INDEX["energy_q10"]
+_ZC_RATE, _OSC_FREQ, _RICE_FREQ = INDEX["zc_rate"], INDEX["osc_freq"], INDEX["rice_freq"]
+_N_CROSSINGS, _NOISE, _STICK_MEAN = INDEX["n_crossings"], INDEX["noise"], INDEX["stick_mean"]
+_ENERGY_TARGETS = (0.1, 0.5, 0.9)
+
+
+@numba.njit(cache=True, inline="always")
+def _raw_features(phase, a, half, out):
+    """``delta_a`` and ``noise`` [g] from the raw samples inside the window; returns (noise, samples inside)."""
     n_raw = phase.size
-    # ---- raw: Da and noise over the samples inside the window
     amax = -np.inf
     amin = np.inf
     n_in = 0
@@ -172,7 +179,7 @@ def _row_features(phase, a, half, omega, n_grid, out):
                 amax = a[i]
             if a[i] < amin:
                 amin = a[i]
-    out[0] = amax - amin
+    out[_DELTA_A] = amax - amin
     d2 = np.empty(max(n_raw - 2, 1))
     m = 0
     for i in range(1, n_raw - 1):
@@ -180,12 +187,17 @@ def _row_features(phase, a, half, omega, n_grid, out):
             d2[m] = abs(a[i + 1] - 2.0 * a[i] + a[i - 1])
             m += 1
     noise = 1.4826 * np.median(d2[:m]) / math.sqrt(6.0) if m > 0 else 0.0
-    out[16] = noise
-    # ---- bin averages on the analysis grid
+    out[_NOISE] = noise
+    return noise, n_in
+
+
+@numba.njit(cache=True, inline="always")
+def _analysis_grid_means(phase, a, half, n_grid):
+    """The samples inside the window averaged into the ``n_grid`` bins of the analysis grid (gaps filled)."""
     y = np.zeros(n_grid)
     cnt = np.zeros(n_grid)
     scale = n_grid / half
-    for i in range(n_raw):
+    for i in range(phase.size):
         if 0.0 <= phase[i] <= half:
             b = int(phase[i] * scale)
             if b >= n_grid:
@@ -193,8 +205,48 @@ def _row_features(phase, a, half, omega, n_grid, out):
             y[b] += a[i]
             cnt[b] += 1.0
     bin_mean_fill(y, cnt)
+    return y
+
+
+@numba.njit(cache=True, inline="always")
+def _moving_average(y):
+    """Centred moving average over ``SMOOTH_BINS`` bins, shrinking at the edges."""
+    n_grid = y.size
+    ys = np.empty(n_grid)
+    h0 = SMOOTH_BINS // 2
+    for b in range(n_grid):
+        lo = max(0, b - h0)
+        hi = min(n_grid, b - h0 + SMOOTH_BINS)
+        s = 0.0
+        for g in range(lo, hi):
+            s += y[g]
+        ys[b] = s / (hi - lo)
+    return ys
+
+
+@numba.njit(cache=True, inline="always")
+def _onset_bin(ys, stick, thr, dphase, half):
+    """First bin where the smoothed signal leaves the stick level by more than ``thr``, and the onset phase
+    [rad] interpolated to the crossing (``(n_grid, half)`` when it never does)."""
+    n_grid = ys.size
+    prev = 0.0
+    for b in range(n_grid):
+        v = abs(ys[b] - stick)
+        if v > thr:
+            c = (b + 0.5) * dphase
+            if b > 0 and v > prev:
+                frac = (thr - prev) / (v - prev)
+                c = (b - 0.5 + min(max(frac, 0.0), 1.0)) * dphase
+            return b, c
+        prev = v
+    return n_grid, half
+
+
+@numba.njit(cache=True, inline="always")
+def _stick_relative_features(y, ys, noise, n_in, half, out):
+    """Peaks, onset, ``stick_mean`` and energy quantiles relative to the stick level; returns the onset bin."""
+    n_grid = y.size
     dphase = half / n_grid
-    # ---- relative to the stick level
     n_stick = max(2, int(round(STICK_FRACTION * n_grid)))
     stick = 0.0
     for b in range(n_stick):
@@ -208,60 +260,42 @@ def _row_features(phase, a, half, omega, n_grid, out):
             pmax = d
         if d < pmin:
             pmin = d
-    out[1] = pmax
-    out[2] = -pmin
-    # smoothed signal (centred moving average, shrinking at the edges)
-    ys = np.empty(n_grid)
-    h0 = SMOOTH_BINS // 2
-    for b in range(n_grid):
-        lo = max(0, b - h0)
-        hi = min(n_grid, b - h0 + SMOOTH_BINS)
-        s = 0.0
-        for g in range(lo, hi):
-            s += y[g]
-        ys[b] = s / (hi - lo)
+    out[_PEAK_POS] = pmax
+    out[_PEAK_NEG] = -pmin
     per_point = max(n_in / n_grid, 1.0) * SMOOTH_BINS
     thr = max(ONSET_FLOOR_G, ONSET_SIGMAS * noise / math.sqrt(per_point))
-    onset = half
-    k_on = n_grid
-    prev = 0.0
-    for b in range(n_grid):
-        v = abs(ys[b] - stick)
-        if v > thr:
-            k_on = b
-            c = (b + 0.5) * dphase
-            if b > 0 and v > prev:
-                frac = (thr - prev) / (v - prev)
-                c = (b - 0.5 + min(max(frac, 0.0), 1.0)) * dphase
-            onset = c
-            break
-        prev = v
-    out[8] = onset
+    k_on, onset = _onset_bin(ys, stick, thr, dphase, half)
+    out[_ONSET] = onset
     k_end = min(int(STICK_SPAN / dphase), int((onset - 0.01) / dphase))
     if k_end - n_stick >= 4:
         acc = 0.0
         for b in range(n_stick, k_end):
             acc += y[b] - stick
-        out[17] = acc / (k_end - n_stick)
+        out[_STICK_MEAN] = acc / (k_end - n_stick)
     else:
-        out[17] = 0.0
+        out[_STICK_MEAN] = 0.0
     etot = 0.0
     for b in range(n_grid):
         etot += (y[b] - stick) ** 2
-    targets = (0.1, 0.5, 0.9)
     for q in range(3):
         if etot <= 0.0:
-            out[9 + q] = targets[q] * half
+            out[_ENERGY_Q10 + q] = _ENERGY_TARGETS[q] * half
             continue
         acc = 0.0
         res = half
         for b in range(n_grid):
             acc += (y[b] - stick) ** 2
-            if acc >= targets[q] * etot:
+            if acc >= _ENERGY_TARGETS[q] * etot:
                 res = (b + 0.5) * dphase
                 break
-        out[9 + q] = res
-    # ---- about the window mean
+        out[_ENERGY_Q10 + q] = res
+    return k_on
+
+
+@numba.njit(cache=True, inline="always")
+def _mean_relative_features(y, duration, dphase, omega, out):
+    """RMS (whole window and quarters) about the window mean, and the hysteresis crossings and frequencies."""
+    n_grid = y.size
     mean = 0.0
     for b in range(n_grid):
         mean += y[b]
@@ -274,10 +308,9 @@ def _row_features(phase, a, half, omega, n_grid, out):
         for b in range(lo, hi):
             sq += (y[b] - mean) ** 2
         sq_all += sq
-        out[4 + qi] = math.sqrt(sq / (hi - lo))
+        out[_RMS_Q1 + qi] = math.sqrt(sq / (hi - lo))
     rms = math.sqrt(sq_all / n_grid)
-    out[3] = rms
-    duration = half / omega
+    out[_RMS] = rms
     hband = max(HYSTERESIS_FRACTION * rms, HYSTERESIS_FLOOR_G)
     state = 0
     n_cross = 0
@@ -293,27 +326,42 @@ def _row_features(phase, a, half, omega, n_grid, out):
                     first = b
                 lastc = b
             state = s
-    out[15] = n_cross
-    out[12] = n_cross / duration
+    out[_N_CROSSINGS] = n_cross
+    out[_ZC_RATE] = n_cross / duration
     span = (lastc - first) * dphase / omega
-    out[13] = (n_cross - 1) / (2.0 * span) if (n_cross >= 2 and span > 0) else 0.0
-    # Rice frequency after the onset, on the smoothed signal
-    if k_on < n_grid - 2:
-        m2 = 0.0
-        for b in range(k_on, n_grid):
-            m2 += ys[b]
-        m2 /= n_grid - k_on
-        v0 = 0.0
-        v1 = 0.0
-        dt = dphase / omega
-        for b in range(k_on, n_grid - 1):
-            v0 += (ys[b] - m2) ** 2
-            v1 += ((ys[b + 1] - ys[b]) / dt) ** 2
-        v0 /= n_grid - k_on - 1
-        v1 /= n_grid - k_on - 1
-        out[14] = math.sqrt(v1 / v0) / (2.0 * math.pi) if v0 > 0 else 0.0
-    else:
-        out[14] = 0.0
+    out[_OSC_FREQ] = (n_cross - 1) / (2.0 * span) if (n_cross >= 2 and span > 0) else 0.0
+
+
+@numba.njit(cache=True, inline="always")
+def _rice_frequency(ys, k_on, dt):
+    """``rms(d ys/dt) / (2 pi rms(ys))`` after the onset bin ``k_on`` (about the mean there) [Hz]; 0 without one."""
+    n_grid = ys.size
+    if k_on >= n_grid - 2:
+        return 0.0
+    m2 = 0.0
+    for b in range(k_on, n_grid):
+        m2 += ys[b]
+    m2 /= n_grid - k_on
+    v0 = 0.0
+    v1 = 0.0
+    for b in range(k_on, n_grid - 1):
+        v0 += (ys[b] - m2) ** 2
+        v1 += ((ys[b + 1] - ys[b]) / dt) ** 2
+    v0 /= n_grid - k_on - 1
+    v1 /= n_grid - k_on - 1
+    return math.sqrt(v1 / v0) / (2.0 * math.pi) if v0 > 0 else 0.0
+
+
+@numba.njit(cache=True)
+def _row_features(phase, a, half, omega, n_grid, out):
+    """Features of one cycle (the table of the module docstring). phase [rad] sorted; a [g]; out: one row."""
+    noise, n_in = _raw_features(phase, a, half, out)
+    y = _analysis_grid_means(phase, a, half, n_grid)
+    ys = _moving_average(y)
+    k_on = _stick_relative_features(y, ys, noise, n_in, half, out)
+    dphase = half / n_grid
+    _mean_relative_features(y, half / omega, dphase, omega, out)
+    out[_RICE_FREQ] = _rice_frequency(ys, k_on, dphase / omega)
 
 
 @numba.njit(cache=True)

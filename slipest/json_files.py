@@ -9,7 +9,21 @@ the document's contents itself and raises its own error class.
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
+
+import numpy as np
+
+
+def json_number(x) -> float | None:
+    """A JSON-safe float: NaN and infinities become None (JSON has no literal for them)."""
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def json_numbers(a) -> list:
+    """A JSON-safe flat list of floats (NaN and infinities become None)."""
+    return [json_number(v) for v in np.asarray(a, dtype=float).ravel()]
 
 
 def read_json(path, shipped: str, what: str, regenerate: str, error: type[Exception]) -> tuple[object, str]:

@@ -20,7 +20,7 @@ or a leg speed outside the models' (``"speed"``)
 still gives an Estimate, with NaN values and ``quality`` naming the reason:
 nothing is dropped silently, and nothing is estimated from corrupted data.
 
-Methods:
+Methods (each a :class:`~slipest.cycle_estimator.CycleEstimator`):
 
 * ``"default"``: the multi-feature surrogate with the recursive soil filter
   (:class:`slipest.estimator.SoilSlipEstimator`). Works with the soil
@@ -58,11 +58,14 @@ from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
-from slipest.features import DEFAULT_OMEGA, INDEX, cycle_features
+from slipest.cycle_estimator import CycleEstimate
+from slipest.features import INDEX, cycle_features
 from slipest.inverse.base import Soil
 from slipest.segmentation import CycleSegmenter
 
+#: Estimation methods (``method=``).
 METHODS = ("default", "eq515")
+_DELTA_A = INDEX["delta_a"]
 #: :meth:`SlipEstimator.push` has the estimator prefetch its tables into the CPU caches once this
 #: fraction of the last cycle's duration has passed since it closed (about 25 ms before the next
 #: close at the models' speed): the estimate on the closing sample then waits less on memory.
@@ -111,6 +114,20 @@ class Estimate:
     def as_dict(self) -> dict:
         return asdict(self)
 
+    @classmethod
+    def of_cycle(cls, cyc, quality: str, slip_ref: float, delta_a: float = math.nan,
+                 r: CycleEstimate | None = None) -> "Estimate":
+        """The row of closed cycle ``cyc`` (a :class:`~slipest.segmentation.LegCycle`): estimated when
+        ``r`` is given (``quality`` "ok"), else every estimated value NaN and ``quality`` says why."""
+        r = r or _NO_ESTIMATE
+        return cls(cycle=int(cyc.k), t_end=float(cyc.t_end), delta_a=delta_a, slip=r.slip, slip_std=r.slip_std,
+                   dphi=r.dphi, dphi_std=r.dphi_std, quality=quality, t_start=float(cyc.t_start), kS=r.kS,
+                   kS_std=r.kS_std, phiS=r.phiS, phiS_std=r.phiS_std, change_prob=r.change_prob, slip_ref=slip_ref,
+                   used_reference=bool(r.used_reference), n_samples=int(cyc.n_samples))
+
+
+_NO_ESTIMATE = CycleEstimate.nan()
+
 
 #: Column order of :class:`Estimate` (for CSV/JSON writers): the eight columns every slipest command
 #: prints (``cycle, t_end, delta_a, slip, slip_std, dphi, dphi_std, quality``), then the rest.
@@ -134,8 +151,10 @@ class SlipEstimator:
     use_reference: learn the soil from reference slips (see module docstring).
     on_estimate: callable called with each :class:`Estimate` as soon as it exists.
     segmenter: options for :class:`~slipest.segmentation.CycleSegmenter`.
-    estimator: options for :class:`~slipest.estimator.SoilSlipEstimator`
-    (``hazard``, ``soil_temper``, ...). model / calibration: the inverse
+    estimator: options of the method's cycle estimator
+    (:class:`~slipest.estimator.SoilSlipEstimator`: ``hazard``,
+    ``soil_temper``, ...; :class:`~slipest.inverse.eq515.Eq515Tracker`:
+    ``dphi0``, ``dphi0_std``, ``q``). model / calibration: the inverse
     model and calibration dicts to use instead of the shipped files.
     speed_tol: a cycle whose mean leg speed differs from the one the models
     were made at (0.63 rad/s) by more than this fraction is flagged
@@ -170,16 +189,6 @@ class SlipEstimator:
         if not speed_tol > 0:
             raise ValueError(f"speed_tol={speed_tol} must be > 0")
         self.speed_tol = float(speed_tol)
-        self._check_legs()
-        if method == "eq515":
-            from slipest.inverse.eq515 import Eq515Inverse
-
-            s = self.soil
-            if s is None or s.kS is None:
-                raise ValueError("method 'eq515' needs the soil's kS (Eq. 5.15 cannot learn it)")
-            if s.dphi is None and not self.use_reference:
-                raise ValueError("method 'eq515' needs the soil's dphi, or use_reference=True to learn it from reference slips")
-            self._eq515 = Eq515Inverse.from_calibration(calibration)
         self.segmenter = CycleSegmenter(self.n_legs, **self._seg_opts)
         self._make_filter()
         self._reset_counts()
@@ -192,40 +201,24 @@ class SlipEstimator:
             arr.flags.writeable = False
         cycle_features(ph, az, tt, n_legs=self.n_legs)
 
-    def _check_legs(self) -> None:
-        """The shipped models were made for one wheel-leg geometry: refuse another number of legs."""
-        if self.method == "eq515":
-            from slipest.calibration import load_calibration
-
-            cal = self._calibration if self._calibration is not None else load_calibration()
-            legs = int(cal.get("model", {}).get("params", {}).get("nL", 4))
-            self.model_omega = float(cal.get("model", {}).get("params", {}).get("omega", DEFAULT_OMEGA))
-            what = "the Eq. 5.15 calibration"
-        else:
-            from slipest.inverse.surrogate import load_inverse_model
-
-            model = self._model if self._model is not None else load_inverse_model()
-            legs = int(model.meta.get("training", {}).get("n_legs", 4))
-            self.model_omega = float(model.meta.get("training", {}).get("omega", DEFAULT_OMEGA))
-            what = "the inverse model"
-        if legs != self.n_legs:
-            raise ValueError(f"{what} was made for a {legs}-leg wheel-leg, not {self.n_legs} legs: "
-                             "recalibrate/retrain it for this geometry")
-
-    # ------------------------------------------------------------------
     def _make_filter(self) -> None:
+        """The cycle estimator of ``method`` (one place that knows the methods), checked against the geometry."""
         if self.method == "eq515":
             from slipest.inverse.eq515 import Eq515Tracker
 
-            s = self.soil
-            known = s.dphi is not None
-            self.filter = Eq515Tracker(self._eq515, s.kS, dphi0=s.dphi if known else 0.175, dphi_known=known,
-                                       **self._est_opts)
+            self.filter = Eq515Tracker.from_calibration(self.soil, self.use_reference, self._calibration,
+                                                        **self._est_opts)
+            what = "the Eq. 5.15 calibration"
         else:
             from slipest.estimator import SoilSlipEstimator
 
             self.filter = SoilSlipEstimator(model=self._model, soil=self.soil, use_reference=self.use_reference,
                                             n_legs=self.n_legs, **self._est_opts)
+            what = "the inverse model"
+        if self.filter.model_legs != self.n_legs:
+            raise ValueError(f"{what} was made for a {self.filter.model_legs}-leg wheel-leg, not {self.n_legs} legs: "
+                             "recalibrate/retrain it for this geometry")
+        self.model_omega = self.filter.model_omega
 
     def _reset_counts(self) -> None:
         self._ref = math.nan  # last finite reference slip since the last cycle closed
@@ -238,7 +231,7 @@ class SlipEstimator:
     def reset(self) -> None:
         """Forget the stream and everything learnt (segmenter, soil filter, counters)."""
         self.segmenter = CycleSegmenter(self.n_legs, **self._seg_opts)
-        self._make_filter()
+        self.filter.reset()
         self._reset_counts()
 
     @property
@@ -262,10 +255,7 @@ class SlipEstimator:
     # ------------------------------------------------------------------
     def _flagged(self, cyc, quality: str, ref: float) -> Estimate:
         self._n_flagged[quality] = self._n_flagged.get(quality, 0) + 1
-        n = math.nan
-        return Estimate(cycle=int(cyc.k), t_end=float(cyc.t_end), delta_a=n, slip=n, slip_std=n, dphi=n, dphi_std=n,
-                        quality=quality, t_start=float(cyc.t_start), kS=n, kS_std=n, phiS=n, phiS_std=n,
-                        change_prob=n, slip_ref=ref, used_reference=False, n_samples=int(cyc.n_samples))
+        return Estimate.of_cycle(cyc, quality, ref)
 
     def _estimate(self, cyc, ref: float) -> Estimate:
         if cyc.quality != "ok":
@@ -280,29 +270,11 @@ class SlipEstimator:
             return self._flagged(cyc, "features", ref)
         if not all(map(math.isfinite, f.tolist())):  # (numpy's reductions cost more on 18 values)
             return self._flagged(cyc, "features", ref)
-        da = float(f[INDEX["delta_a"]])
         use = self.use_reference and math.isfinite(ref)
-        if self.method == "eq515":
-            use = use and not self.filter.dphi_known
-            slip, sd, dphi, dsd = self.filter.update(da, ref if use else None)
-            s = self.soil
-            kS, kstd = s.kS, 0.0
-            phiS = s.phiS if s.phiS is not None else math.nan
-            pstd = 0.0 if s.phiS is not None else math.nan
-            est = Estimate(cycle=int(cyc.k), t_end=float(cyc.t_end), delta_a=da, slip=slip, slip_std=sd, dphi=dphi,
-                           dphi_std=dsd, quality="ok", t_start=float(cyc.t_start), kS=kS, kS_std=kstd, phiS=phiS,
-                           phiS_std=pstd, change_prob=math.nan, slip_ref=ref, used_reference=bool(use),
-                           n_samples=int(cyc.n_samples))
-        else:
-            r = self.filter.update(f, ref if use else None)
-            use = r.used_reference
-            est = Estimate(cycle=int(cyc.k), t_end=float(cyc.t_end), delta_a=da, slip=r.slip, slip_std=r.slip_std,
-                           dphi=r.dphi, dphi_std=r.dphi_std, quality="ok", t_start=float(cyc.t_start), kS=r.kS,
-                           kS_std=r.kS_std, phiS=r.phiS, phiS_std=r.phiS_std, change_prob=r.change_prob,
-                           slip_ref=ref, used_reference=bool(use), n_samples=int(cyc.n_samples))
-        if use:
+        r = self.filter.update(f, ref if use else None)
+        if r.used_reference:
             self._n_reference += 1
-        return est
+        return Estimate.of_cycle(cyc, "ok", ref, float(f[_DELTA_A]), r)
 
     def _emit(self, cycles, refs) -> list:
         out = []
@@ -330,9 +302,7 @@ class SlipEstimator:
             self._prefetch_at = last.t_end + PREFETCH_LEAD * (last.t_end - last.t_start)
         elif t >= self._prefetch_at:  # the next close is near: warm the estimator's tables now
             self._prefetch_at = math.inf
-            prefetch = getattr(self.filter, "prefetch", None)
-            if prefetch is not None:
-                prefetch()
+            self.filter.prefetch()
         if slip_ref is not None and math.isfinite(slip_ref):
             self._ref = float(slip_ref)
         return out

@@ -84,34 +84,59 @@ def test_bad_coefficients_refused():
 def test_tracker_learns_dphi_from_reference_slips():
     inv = Eq515Inverse(**COEF)
     true_dphi, ks = 0.25, 1000.0
-    tr = Eq515Tracker(inv, ks, dphi0=0.1, dphi0_std=0.1, q=1e-6)
+    tr = Eq515Tracker(inv, Soil(kS=ks), use_reference=True, dphi0=0.1, dphi0_std=0.1, q=1e-6)
     rng = np.random.default_rng(0)
     stds = []
     for _ in range(40):
         da = rng.uniform(0.5, 1.8)
         ref = float(inv.slip_from_da(da, true_dphi, ks))
-        slip, slip_std, dphi, dstd = tr.update(da, ref)
+        slip, slip_std, dphi, dstd, used = tr.step(da, ref)
+        assert used
         stds.append(dstd)
     assert tr.dphi == pytest.approx(true_dphi, abs=0.01)
     assert stds[-1] < stds[0]
     # the slip of a cycle without a reference now follows Eq. 5.15 at the learnt dphi
-    slip, slip_std, _, _ = tr.update(1.0, None)
+    slip, slip_std, _, _, used = tr.step(1.0, None)
+    assert not used
     assert slip == pytest.approx(float(inv.slip_from_da(1.0, tr.dphi, ks)))
     assert slip_std >= inv.slip_std
 
 
 def test_tracker_without_references_keeps_prior_and_grows_uncertain():
     inv = Eq515Inverse(**COEF)
-    tr = Eq515Tracker(inv, 1000.0, dphi0=0.175, dphi0_std=0.05, q=1e-4)
+    tr = Eq515Tracker(inv, Soil(kS=1000.0), use_reference=True, dphi0=0.175, dphi0_std=0.05, q=1e-4)
     for _ in range(10):
-        tr.update(1.0, None)
+        tr.step(1.0, None)
     assert tr.dphi == pytest.approx(0.175)
     assert tr.dphi_std == pytest.approx(math.sqrt(0.05**2 + 10 * 1e-4))
 
 
 def test_tracker_with_known_dphi_ignores_references():
     inv = Eq515Inverse(**COEF)
-    tr = Eq515Tracker(inv, 1000.0, dphi0=0.2, dphi_known=True)
-    slip, slip_std, dphi, dstd = tr.update(1.0, 0.9)
+    tr = Eq515Tracker(inv, Soil.from_args(kS=1000.0, dphi=0.2), use_reference=True)
+    slip, slip_std, dphi, dstd, used = tr.step(1.0, 0.9)
+    assert not used
     assert (slip, dphi, dstd) == (pytest.approx(0.52), 0.2, 0.0)
     assert slip_std == pytest.approx(0.07)
+
+
+def test_tracker_is_a_cycle_estimator_on_feature_rows():
+    inv = Eq515Inverse(**COEF)
+    tr = Eq515Tracker(inv, Soil.from_args(kS=1000.0, phiS=0.5, dphi=0.2))
+    row = np.zeros(len(FEATURE_NAMES))
+    row[INDEX["delta_a"]] = 1.0
+    est = tr.update(row, 0.9)
+    assert est.slip == pytest.approx(0.52) and est.dphi == pytest.approx(0.2) and est.dphi_std == 0.0
+    assert (est.kS, est.kS_std, est.phiS, est.phiD) == (1000.0, 0.0, 0.5, pytest.approx(0.3))
+    assert math.isnan(est.change_prob) and not est.used_reference
+    row[INDEX["delta_a"]] = math.nan
+    with pytest.raises(ValueError, match="Da"):
+        tr.update(row)
+
+
+def test_tracker_needs_kS_and_dphi_or_references():
+    inv = Eq515Inverse(**COEF)
+    with pytest.raises(ValueError, match="kS"):
+        Eq515Tracker(inv, Soil.from_args(dphi=0.2))
+    with pytest.raises(ValueError, match="use_reference"):
+        Eq515Tracker(inv, Soil.from_args(kS=1000.0))

@@ -38,7 +38,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+import forward_calibration as fwd  # noqa: E402  (tools/forward_calibration.py, beside this script)
 from slipest import calibration as cal_mod  # noqa: E402
+from slipest.json_files import json_number  # noqa: E402
 from slipest.model import kernel as K  # noqa: E402
 from slipest.model.params import StickSlipParams, param_grid, param_matrix  # noqa: E402
 from slipest.model.stance import DEFAULT_DT, simulate_batch, status_text  # noqa: E402
@@ -138,7 +140,7 @@ def report(args, grid, n_total, n_fail, fail_lines, table, eqfit, cands, chosen,
     L.append("   (the thesis text swaps the names 'slope'/'intercept'; here aIV is the intercept, bIV the slope)")
     L.append(f"   {'kS':>6} {'phiS':>6} {'phiD':>5} {'dphi':>6} | {'aIV [-]':>8} {'bIV [1/g]':>9} {'R^2':>6} {'n':>3} |"
              f" {'alpha [g]':>9} {'beta [g]':>9}")
-    soils, a_f, b_f, r2_f, _ = cal_mod.forward_lines(table["slip"], table["kS"], table["phiS"], table["phiD"], table["Da"])
+    soils, a_f, b_f, r2_f, _ = fwd.forward_lines(table["slip"], table["kS"], table["phiS"], table["phiD"], table["Da"])
     for s in range(eqfit.soils.shape[0]):
         k, ps, pd = eqfit.soils[s]
         L.append(
@@ -203,7 +205,7 @@ def report(args, grid, n_total, n_fail, fail_lines, table, eqfit, cands, chosen,
     L.append("   (cv: leave one soil out; val: the random off-grid validation table; ident: the grid determines "
              "every coefficient;\n    mono: share of soils of the calibrated box on which Da increases strictly with "
              "slip, i.e. the inverse is unique)")
-    L.append(f"   selection rule: {cal_mod.selection_rule(cands, args.tolerance)}")
+    L.append(f"   selection rule: {fwd.selection_rule(cands, args.tolerance)}")
     L.append(f"   shipped: {chosen.model.name} ({chosen.n_coef} coefficients)")
     L.append(f"   for scale: predicting the mean slip gives RMSE {np.std(table['slip']):.4f} over the sweep; "
              f"Eq. 5.15 gives {eqfit.rmse_end_to_end:.4f} (val {eq_val['rmse']:.4f})")
@@ -244,8 +246,8 @@ def plot(path: Path, table, eqfit, chosen, val, eq_pred_val):
     ax.grid(True, alpha=0.3)
 
     ax = axes[1, 0]
-    inv = cal_mod.invert_slip(chosen.model, table["Da"], table["kS"], table["phiS"], table["phiD"])
-    inv_val = cal_mod.invert_slip(chosen.model, val["Da"], val["kS"], val["phiS"], val["phiD"])
+    inv = fwd.invert_slip(chosen.model, table["Da"], table["kS"], table["phiS"], table["phiD"])
+    inv_val = fwd.invert_slip(chosen.model, val["Da"], val["kS"], val["phiS"], val["phiD"])
     rng = np.random.default_rng(1)
     jitter = rng.uniform(-0.006, 0.006, table["slip"].size)  # the sweep's slips sit on 11 levels
     ax.plot(table["slip"] + jitter, inv, ".", ms=3, alpha=0.5, label=f"sweep (RMSE {chosen.rmse_slip:.3f})")
@@ -320,13 +322,13 @@ def main(argv=None) -> int:
     eqfit = cal_mod.fit_eq515(*cols)
     eq_pred_val = cal_mod.eq515_slip(eqfit, val["Da"], val["phiS"] - val["phiD"], val["kS"])
     eq_val = {"r2": cal_mod.r2_score(val["slip"], eq_pred_val), "rmse": cal_mod.rmse(val["slip"], eq_pred_val)}
-    with tqdm(total=len(cal_mod.DEFAULT_CANDIDATES), desc="forward fits (+ leave-one-soil-out)", unit="model") as bar:
-        cands = cal_mod.compare_forward(
+    with tqdm(total=len(fwd.DEFAULT_CANDIDATES), desc="forward fits (+ leave-one-soil-out)", unit="model") as bar:
+        cands = fwd.compare_forward(
             *cols,
             validation=(val["slip"], val["kS"], val["phiS"], val["phiD"], val["Da"]),
             progress=bar.update,
         )
-    chosen = cal_mod.select_forward(cands, args.tolerance)
+    chosen = fwd.select_forward(cands, args.tolerance)
 
     text = report(args, grid, n_total, n_fail, failure_report(status), table, eqfit, cands, chosen, val_info, eq_val)
     print()
@@ -356,12 +358,12 @@ def main(argv=None) -> int:
             "distribution": "uniform over the grid's slip, kS, phiD and dphi ranges",
         },
     }
-    cal = cal_mod.build_calibration(eqfit, cands, chosen, model, grid_json, command, args.tolerance)
-    cal["eq515"]["r2_end_to_end_val"] = cal_mod._num(eq_val["r2"])
-    cal["eq515"]["rmse_end_to_end_val"] = cal_mod._num(eq_val["rmse"])
+    cal = fwd.build_calibration(eqfit, cands, chosen, model, grid_json, command, args.tolerance)
+    cal["eq515"]["r2_end_to_end_val"] = json_number(eq_val["r2"])
+    cal["eq515"]["rmse_end_to_end_val"] = json_number(eq_val["rmse"])
     json_path = PACKAGE_JSON if args.write_package_data else out / "calibration.json"
     cal_mod.save_calibration(cal, json_path)
-    cal_mod.load_calibration(json_path)  # round-trip check
+    fwd.check_forward_section(cal_mod.load_calibration(json_path))  # round-trip check
     print(f"wrote {out / 'calibration_table.txt'}, {out / 'calibration.png'}, {json_path}")
     return 0
 

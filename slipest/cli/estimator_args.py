@@ -15,7 +15,9 @@ SOIL_OPTIONS = ("kS", "phiS", "phiD", "dphi")
 
 def add_estimator_arguments(p) -> None:
     """Add ``--method``, ``--model`` and the soil options to a parser or an argument group."""
-    p.add_argument("--method", choices=("default", "eq515"), default="default",
+    from slipest.online import METHODS
+
+    p.add_argument("--method", choices=METHODS, default="default",
                    help="default: multi-feature inverse with the soil learnt as it goes; eq515: thesis Eq. 5.15 "
                    "(needs --kS and --dphi or --phiS/--phiD, or --use-reference)")
     p.add_argument("--model", metavar="FILE", default=None,

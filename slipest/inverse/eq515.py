@@ -34,6 +34,7 @@ import math
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
+from slipest.cycle_estimator import CycleEstimate, CycleEstimator
 from slipest.features import INDEX
 from slipest.inverse.base import SlipInverse, Soil
 
@@ -108,32 +109,59 @@ class Eq515Inverse(SlipInverse):
         return s, np.where(np.isfinite(s), self.slip_std, np.nan)
 
 
-class Eq515Tracker:
+class Eq515Tracker(CycleEstimator):
     """The thesis's recursive use of Eq. 5.15: learn ``dphi`` from reference slips, estimate slip from ``Da``.
 
-    State: ``dphi`` [rad], a random walk (process noise ``q`` [rad^2] per
-    cycle) in a 1-state :class:`filterpy.kalman.KalmanFilter`, started at
-    ``dphi0`` with standard deviation ``dphi0_std``. ``kS`` [N/m] must be
-    known (Eq. 5.15 has no way to learn it alongside ``dphi``).
-    :meth:`update` takes one cycle's ``Da`` [g] and, optionally, its
-    reference slip; returns ``(slip, slip_std, dphi, dphi_std)`` with the
-    slip from Eq. 5.15 at the current ``dphi`` (its std combines the
-    equation's RMSE and the ``dphi`` uncertainty through ``bmu Da + cmu``).
+    ``soil``: ``kS`` [N/m] must be known (Eq. 5.15 cannot learn it alongside
+    ``dphi``); with ``dphi`` known it is used as is, else ``dphi`` [rad] is a
+    random walk (process noise ``q`` [rad^2] per cycle) in a 1-state
+    :class:`filterpy.kalman.KalmanFilter`, started at ``dphi0`` with standard
+    deviation ``dphi0_std`` and updated by :meth:`Eq515Inverse.dphi_from_da`
+    whenever a reference slip comes (only with ``use_reference``). The slip
+    of every cycle is Eq. 5.15 at the current ``dphi``; its std combines the
+    equation's RMSE and the ``dphi`` uncertainty through ``bmu Da + cmu``.
+    ``model_legs``, ``model_omega`` [rad/s]: the geometry the coefficients
+    were calibrated for (:class:`~slipest.cycle_estimator.CycleEstimator`).
     """
 
-    def __init__(self, inverse: Eq515Inverse, kS: float, dphi0: float = 0.175, dphi0_std: float = 0.1, q: float = 1e-4,
-                 dphi_known: bool = False):
-        if not (math.isfinite(kS) and kS > 0):
-            raise ValueError(f"kS={kS} N/m must be positive")
+    def __init__(self, inverse: Eq515Inverse, soil: Soil, use_reference: bool = False, dphi0: float = 0.175,
+                 dphi0_std: float = 0.1, q: float = 1e-4, model_legs: int = 4, model_omega: float = 0.63):
+        if soil is None or soil.kS is None:
+            raise ValueError("method 'eq515' needs the soil's kS (Eq. 5.15 cannot learn it)")
+        if soil.dphi is None and not use_reference:
+            raise ValueError("method 'eq515' needs the soil's dphi, or use_reference=True to learn it from reference "
+                             "slips")
         self.inv = inverse
-        self.kS = float(kS)
-        self.dphi_known = dphi_known
+        self.soil = soil
+        self.kS = float(soil.kS)
+        self.use_reference = bool(use_reference)
+        self.dphi_known = soil.dphi is not None
+        self.model_legs = int(model_legs)
+        self.model_omega = float(model_omega)
+        self._dphi0 = float(soil.dphi if self.dphi_known else dphi0)
+        self._dphi0_std = float(dphi0_std)
+        self._q = float(q)
+        self.reset()
+
+    @classmethod
+    def from_calibration(cls, soil: Soil, use_reference: bool = False, calibration: dict | None = None,
+                         **options) -> "Eq515Tracker":
+        """A tracker with the coefficients and geometry of a calibration dict (default: the shipped one)."""
+        if calibration is None:
+            from slipest.calibration import load_calibration
+
+            calibration = load_calibration()
+        params = calibration.get("model", {}).get("params", {})
+        return cls(Eq515Inverse.from_calibration(calibration), soil, use_reference,
+                   model_legs=int(params.get("nL", 4)), model_omega=float(params.get("omega", 0.63)), **options)
+
+    def reset(self) -> None:
         kf = KalmanFilter(dim_x=1, dim_z=1)
-        kf.x = np.array([[float(dphi0)]])
-        kf.P = np.array([[0.0 if dphi_known else float(dphi0_std) ** 2]])
+        kf.x = np.array([[self._dphi0]])
+        kf.P = np.array([[0.0 if self.dphi_known else self._dphi0_std**2]])
         kf.F = np.eye(1)
         kf.H = np.eye(1)
-        kf.Q = np.array([[0.0 if dphi_known else float(q)]])
+        kf.Q = np.array([[0.0 if self.dphi_known else self._q]])
         self.kf = kf
 
     @property
@@ -144,17 +172,30 @@ class Eq515Tracker:
     def dphi_std(self) -> float:
         return math.sqrt(max(float(self.kf.P[0, 0]), 0.0))
 
-    def update(self, da_g: float, slip_ref: float | None = None):
-        """One cycle: ``Da`` [g], optional reference slip [-]. Returns ``(slip, slip_std, dphi, dphi_std)``."""
+    def step(self, da_g: float, slip_ref: float | None = None) -> tuple[float, float, float, float, bool]:
+        """One cycle's ``Da`` [g] and optional reference slip [-]: ``(slip, slip_std, dphi, dphi_std, used_reference)``."""
         if not self.dphi_known:
             self.kf.predict()
         dphi, dstd = self.dphi, self.dphi_std
         slip = float(self.inv.slip_from_da(da_g, dphi, self.kS))
         sens = self.inv.cmu + self.inv.bmu * da_g
         slip_std = math.sqrt(self.inv.slip_std**2 + (sens * dstd) ** 2)
-        if slip_ref is not None and math.isfinite(slip_ref) and not self.dphi_known:
+        used = False
+        if self.use_reference and slip_ref is not None and math.isfinite(slip_ref) and not self.dphi_known:
             z = float(self.inv.dphi_from_da(da_g, slip_ref, self.kS))
             r = float(self.inv.dphi_std(da_g))
             if math.isfinite(z) and math.isfinite(r):
                 self.kf.update(np.array([[z]]), R=np.array([[r * r]]))
-        return slip, slip_std, self.dphi, self.dphi_std
+                used = True
+        return slip, slip_std, self.dphi, self.dphi_std, used
+
+    def update(self, features, slip_ref: float | None = None) -> CycleEstimate:
+        da = float(np.asarray(features, dtype=float)[INDEX["delta_a"]])
+        if not math.isfinite(da):
+            raise ValueError("non-finite Da: this cycle cannot be estimated")
+        slip, slip_std, dphi, dphi_std, used = self.step(da, slip_ref)
+        s = self.soil
+        phiS, phiS_std = (s.phiS, 0.0) if s.phiS is not None else (math.nan, math.nan)
+        phiD, phiD_std = (s.phiD, 0.0) if s.phiD is not None else (math.nan, math.nan)
+        return CycleEstimate(slip, slip_std, dphi, dphi_std, self.kS, 0.0, phiS, phiS_std, phiD, phiD_std, math.nan,
+                             used)

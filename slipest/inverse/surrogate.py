@@ -144,6 +144,16 @@ class FeatureSurrogate:
 
     # ------------------------------------------------------------------ evaluation
     @property
+    def n_legs(self) -> int:
+        """Legs of the wheel-leg the model was trained for [-] (4 when the file does not say)."""
+        return int(self.meta.get("training", {}).get("n_legs", 4))
+
+    @property
+    def omega(self) -> float:
+        """Leg speed the model was trained at [rad/s] (0.63 when the file does not say)."""
+        return float(self.meta.get("training", {}).get("omega", 0.63))
+
+    @property
     def columns(self) -> np.ndarray:
         """Column of each modelled feature in a full feature row."""
         return np.array([FEATURE_NAMES.index(f) for f in self.features])

@@ -23,16 +23,6 @@ DEFAULT_OMEGA = 0.63
 DEFAULT_LEGS = 4
 
 
-def default_leg_length(n_legs: int = DEFAULT_LEGS, omega: float = DEFAULT_OMEGA, speed: float = 0.10) -> float:
-    """Spoke length [m] such that ``lS omega sin(a)/a = speed`` with ``a = pi/nL``.
-
-    That is the mean horizontal hub speed over a stance with no slip; the
-    spec's ``lS = 0.1763 m`` is this value for 4 legs, 0.63 rad/s, 0.10 m/s.
-    """
-    a = math.pi / n_legs
-    return speed * a / (omega * math.sin(a))
-
-
 @dataclass(frozen=True)
 class StickSlipParams:
     """One stance's parameters (SI).

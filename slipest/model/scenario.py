@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 
@@ -109,23 +109,6 @@ class Scenario:
             replace(base, **{k: float(np.atleast_1d(v)[j]) for k, v in arrays.items()}) for j in range(n)
         )
         return cls(cycles=cycles, **(imu or {}))
-
-    @classmethod
-    def from_functions(
-        cls,
-        n_cycles: int,
-        base: StickSlipParams | None = None,
-        imu: dict | None = None,
-        **functions: Callable[[float], float],
-    ) -> "Scenario":
-        """Parameters as functions of time [s], evaluated at each cycle's midstance time."""
-        base = base or StickSlipParams()
-        period = 2 * math.pi / (base.nL * base.omega)
-        t_mid = (np.arange(n_cycles) + 0.5) * period
-        arrays = {k: np.array([float(f(t)) for t in t_mid]) for k, f in functions.items()}
-        if not arrays:
-            return cls.constant(n_cycles, base, **(imu or {}))
-        return cls.per_cycle(base, imu, **arrays)
 
     @classmethod
     def from_segments(

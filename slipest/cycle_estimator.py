@@ -1,0 +1,79 @@
+"""The per-cycle estimator interface: one leg cycle's features in, slip and soil out (pure computation).
+
+Every estimation method :class:`slipest.online.SlipEstimator` offers implements
+:class:`CycleEstimator`: the multi-feature surrogate with its recursive soil
+filter (:class:`slipest.estimator.SoilSlipEstimator`) and the thesis's Eq. 5.15
+(:class:`slipest.inverse.eq515.Eq515Tracker`). The online layer (segmentation,
+quality flags, reference slips, the :class:`~slipest.online.Estimate` rows) is
+the same for both.
+
+Units: slip [-], kS [N/m], phiS, phiD, dphi [rad]; every value comes with its
+standard deviation (``*_std``; 0 when the value is known, NaN when the method
+does not estimate it).
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class CycleEstimate:
+    """What a :class:`CycleEstimator` says of one cycle.
+
+    slip [-]; dphi, phiS, phiD [rad] and kS [N/m]: the soil after this
+    cycle (known: std 0; not estimated: NaN); change_prob: posterior
+    probability that the soil changed at this cycle [-] (NaN when the
+    method has no change detector); used_reference: the reference slip
+    given with the cycle updated what the method learns.
+    """
+
+    slip: float
+    slip_std: float
+    dphi: float
+    dphi_std: float
+    kS: float
+    kS_std: float
+    phiS: float
+    phiS_std: float
+    phiD: float
+    phiD_std: float
+    change_prob: float
+    used_reference: bool
+
+    @classmethod
+    def nan(cls) -> "CycleEstimate":
+        n = math.nan
+        return cls(n, n, n, n, n, n, n, n, n, n, n, False)
+
+
+class CycleEstimator(ABC):
+    """One estimation method, fed one leg cycle at a time, in order.
+
+    ``model_legs`` and ``model_omega`` [rad/s]: the wheel-leg geometry and
+    leg speed the method's model was made for (the online layer refuses
+    another number of legs and flags cycles at another speed).
+    """
+
+    model_legs: int
+    model_omega: float
+
+    @abstractmethod
+    def update(self, features, slip_ref: float | None = None) -> CycleEstimate:
+        """One cycle: its full feature row (:data:`slipest.features.FEATURE_NAMES` order and units) and,
+        optionally, a reference slip [-] (a method that does not learn from references ignores it).
+
+        Raises ``ValueError`` when the row cannot be estimated from (non-finite features the method reads).
+        """
+
+    @abstractmethod
+    def reset(self) -> None:
+        """Forget everything learnt (back to the prior)."""
+
+    def prefetch(self) -> None:
+        """Warm what the next :meth:`update` reads (called shortly before a cycle closes); optional."""
+
+
+__all__ = ["CycleEstimate", "CycleEstimator"]
