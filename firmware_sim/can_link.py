@@ -23,7 +23,7 @@ from typing import Callable
 import can
 import numpy as np
 
-from firmware_sim.device import KIND_IMU, FrameTable, LinkDown
+from firmware_sim.link import Link, LinkDown
 from slipest.io.bus_args import BusConfig, ReconnectingBus
 from slipest.io.can_messages import base_id, encode_imu, encode_slip_reference, load_tables
 
@@ -44,15 +44,18 @@ def unknown_messages(n: int, rng: np.random.Generator) -> list[can.Message]:
     return out
 
 
-class CanLink:
-    """The device's side of a CAN bus (see the module docstring)."""
+class CanLink(Link):
+    """The device's side of a CAN bus (see the module docstring); items are ``can.Message`` s.
+
+    ``wait``: seconds :meth:`open` waits for the bus; ``drain``: read and count
+    what others send, in a thread."""
 
     corrupts = False  # the bus's own CRC protects frames; corruption is a serial fault
 
     def __init__(self, config: BusConfig, announce: Callable[[str], None] | None = None, wait: float = 10.0,
                  drain: bool = True):
+        super().__init__(announce)
         self.config = config
-        self.announce = announce or (lambda text: None)
         self.wait = wait
         self.drain = drain
         self.bus = ReconnectingBus(config, on_event=self.announce)
@@ -87,16 +90,11 @@ class CanLink:
     def ready(self) -> bool:
         return not self._down and self.bus.open()
 
-    def encode(self, table: FrameTable, t_us: np.ndarray, idx: list[int]) -> list[can.Message]:
-        out = []
-        kind, wheel, seq = table.kind, table.wheel, table.seq
-        for k in idx:
-            t = int(t_us[k]) * 1e-6
-            if kind[k] == KIND_IMU:
-                out.append(encode_imu(int(wheel[k]), int(seq[k]), float(table.az[k]), float(table.theta[k]), t))
-            else:
-                out.append(encode_slip_reference(int(wheel[k]), int(seq[k]), float(table.slip[k]), t))
-        return out
+    def encode_imu(self, wheel: int, seq: int, t_us: int, az: float, theta: float) -> can.Message:
+        return encode_imu(wheel, seq, az, theta, t_us * 1e-6)
+
+    def encode_reference(self, wheel: int, seq: int, t_us: int, slip: float) -> can.Message:
+        return encode_slip_reference(wheel, seq, slip, t_us * 1e-6)
 
     def send(self, items) -> int:
         for msg in items:
@@ -110,9 +108,6 @@ class CanLink:
             if self.bus.send(msg):
                 sent += 1
         return sent
-
-    def recover(self) -> None:
-        pass  # ReconnectingBus reopens on the next send/ready
 
     def disconnect(self) -> None:
         """Drop the bus (planned outage)."""

@@ -8,7 +8,7 @@ order, with per-(type, wheel) sequence counters and the angle wrapped to
 
 :class:`Device` paces the tables: the frame of scenario time ``t`` is due at
 ``start + t / speed`` on the host's monotonic clock (``speed`` 1.0 = real
-time; 0 = as fast as possible), hands the due frames to a link
+time; 0 = as fast as possible), hands the due frames to a :class:`~firmware_sim.link.Link`
 (:mod:`firmware_sim.serial_link`, :mod:`firmware_sim.can_link`), applies the
 faults of :mod:`firmware_sim.faults`, and tallies what it sent, lost and
 injected (:meth:`Device.report`).
@@ -21,16 +21,6 @@ monotonic clock at the start [us]: timestamps advance at the scenario's pace
 instant the frame was due on the host's monotonic clock, from which a
 receiver on the same host can measure its latency knowing only ``speed``.
 With ``clock="zero"`` ``t_us = t * 1e6``.
-
-Link protocol (duck-typed)::
-
-    open()                       # create/open; may announce where to connect
-    ready() -> bool              # a peer is there and frames can be sent
-    encode(table, t_us, idx) -> list  # one wire item per frame idx of the table
-    send(items)                  # raises LinkDown when the link failed
-    send_unknown(n, rng) -> int  # a burst of messages the receiver does not know
-    corrupts: bool               # whether items are bytes that faults may corrupt
-    disconnect(); reconnect(); close()
 """
 
 from __future__ import annotations
@@ -39,26 +29,19 @@ import math
 import queue
 import threading
 import time
-from dataclasses import dataclass
 from typing import Callable, Iterator, Sequence
 
 import numpy as np
 
 from firmware_sim.faults import FaultInjector, FaultPlan
+from firmware_sim.link import FRAME_TABLE_DTYPE, KIND_IMU, KIND_REF, Link, LinkDown
+from slipest.latency import latency_summary
 from slipest.model.scenario import Scenario
 from slipest.model.stream import iter_stream
-
-#: Frame kinds of a table (the serial frame type bytes).
-KIND_IMU = 1
-KIND_REF = 2
 
 #: Send-log status of a frame.
 SENT, DROPPED, CORRUPTED, LOST_DISCONNECTED, UNSENT_NO_PEER, UNSENT_LINK_ERROR = range(6)
 STATUS_NAMES = ("sent", "dropped", "corrupted", "lost_disconnected", "unsent_no_peer", "unsent_link_error")
-
-
-class LinkDown(Exception):
-    """A link could not send: the peer or the medium went away."""
 
 
 def wrap_angle(theta):
@@ -66,35 +49,13 @@ def wrap_angle(theta):
     return np.mod(np.asarray(theta, dtype=np.float64) + math.pi, 2 * math.pi) - math.pi
 
 
-@dataclass
-class FrameTable:
-    """Frames of one chunk, in send order.  ``seq`` is the per-(kind, wheel)
-    counter before the link reduces it (mod 2**16 on serial); ``t`` scenario
-    time [s]; ``az`` [m/s^2] and ``theta`` [rad, wrapped] are NaN in
-    reference rows, ``slip`` [-] is the cycle's true slip in every row."""
-
-    kind: np.ndarray
-    wheel: np.ndarray
-    seq: np.ndarray
-    t: np.ndarray
-    az: np.ndarray
-    theta: np.ndarray
-    slip: np.ndarray
-    cycle: np.ndarray
-
-    def __len__(self) -> int:
-        return int(self.t.size)
-
-    def take(self, idx) -> "FrameTable":
-        return FrameTable(*(getattr(self, f)[idx] for f in self.__dataclass_fields__))
-
-
 class ScenarioFeed:
     """Frame tables of ``len(scenarios)`` wheel-legs, merged in time order.
 
     Every wheel's scenario must have the same rate, leg count and leg speed
     (they share the timeline); seeds and slips may differ.  ``duration``
-    [s] stops the stream early.  Iterating yields :class:`FrameTable` s of
+    [s] stops the stream early.  Iterating yields frame tables (structured
+    arrays of dtype :data:`~firmware_sim.link.FRAME_TABLE_DTYPE`) of
     ``chunk_cycles`` leg cycles."""
 
     def __init__(
@@ -129,7 +90,7 @@ class ScenarioFeed:
             by_duration = math.ceil(duration * first.rate - 1e-9) * self.n_wheels
             self.expected_imu_frames = min(self.expected_imu_frames, by_duration)
 
-    def __iter__(self) -> Iterator[FrameTable]:
+    def __iter__(self) -> Iterator[np.ndarray]:
         n = self.n_wheels
         streams = [iter_stream(sc, self.chunk_cycles) for sc in self.scenarios]
         sample0 = 0
@@ -185,7 +146,10 @@ class ScenarioFeed:
                     rows = {k: np.concatenate([rows[k], ref[k]]) for k in rows}
                     order_key = np.concatenate([order_key, rs * (2 * n) + rw])
             order = np.argsort(order_key, kind="stable")
-            yield FrameTable(**{k: v[order] for k, v in rows.items()})
+            table = np.empty(order.size, FRAME_TABLE_DTYPE)
+            for name, column in rows.items():
+                table[name] = column[order]
+            yield table
             last_cycle = int(cyc[-1])
             sample0 += m
             if keep < chunks[0].t.size:
@@ -247,28 +211,6 @@ class _Prefetch:
         self._stop.set()
 
 
-class _Stats:
-    """Streaming summary of the device's send lateness [s]."""
-
-    def __init__(self):
-        self.parts: list[np.ndarray] = []
-
-    def add(self, values: np.ndarray):
-        if values.size:
-            self.parts.append(values.astype(np.float32))
-
-    def summary(self) -> dict:
-        if not self.parts:
-            return {"n": 0}
-        v = np.concatenate(self.parts)
-        return {
-            "n": int(v.size),
-            "median_ms": float(np.median(v) * 1e3),
-            "p99_ms": float(np.percentile(v, 99) * 1e3),
-            "max_ms": float(v.max() * 1e3),
-        }
-
-
 class Device:
     """Paces a :class:`ScenarioFeed` over a link, injecting faults.
 
@@ -287,7 +229,7 @@ class Device:
     def __init__(
         self,
         feed: ScenarioFeed,
-        link,
+        link: Link,
         plan: FaultPlan | None = None,
         *,
         speed: float = 1.0,
@@ -303,6 +245,8 @@ class Device:
             raise ValueError(f"speed={speed} must be >= 0 (0: as fast as possible)")
         if clock not in ("monotonic", "zero"):
             raise ValueError(f"clock={clock!r}: expected 'monotonic' or 'zero'")
+        if not isinstance(link, Link):
+            raise TypeError(f"link must be a firmware_sim.link.Link, got {type(link).__name__}")
         self.feed = feed
         self.link = link
         self.plan = plan or FaultPlan()
@@ -330,7 +274,7 @@ class Device:
             "last_ref_seq_by_wheel": [None] * n,
             "cycles_started": 0,
         }
-        self._lateness = _Stats()
+        self._lateness: list[np.ndarray] = []  # send lateness [s] per table, float32
         self._log_parts: list[dict] = []
         self.start_mono: float | None = None
         self.t0_us = 0
@@ -384,21 +328,20 @@ class Device:
         deadline = None if self.wait_peer is None else time.monotonic() + self.wait_peer
         while not self.stop.is_set() and not self.link.ready():
             if deadline is not None and time.monotonic() > deadline:
-                name = getattr(self.link, "name", "the link")
-                raise TimeoutError(f"no peer connected to {name} within {self.wait_peer:g} s")
+                raise TimeoutError(f"no peer connected to {self.link.name} within {self.wait_peer:g} s")
             time.sleep(0.01)
 
-    def _send_table(self, table: FrameTable) -> None:
+    def _send_table(self, table: np.ndarray) -> None:
         n = len(table)
-        is_imu = table.kind == KIND_IMU
+        is_imu = table["kind"] == KIND_IMU
         self.counts["imu_frames_generated"] += int(np.count_nonzero(is_imu))
         self.counts["ref_frames_generated"] += int(n - np.count_nonzero(is_imu))
-        self.injector.apply_stuck(table.t, table.wheel, table.az, is_imu)
-        drop, corrupt_one = self.injector.frame_faults(table.t, table.wheel)
-        t_us = self.t0_us + np.rint(table.t * 1e6).astype(np.int64)
-        due = self._due(table.t)
+        self.injector.apply_stuck(table["t"], table["wheel"], table["az"], is_imu)
+        drop, corrupt_one = self.injector.frame_faults(table["t"], table["wheel"])
+        t_us = self.t0_us + np.rint(table["t"] * 1e6).astype(np.int64)
+        due = self._due(table["t"])
         due_list = due.tolist()
-        t_list = table.t.tolist()
+        t_list = table["t"].tolist()
         drop_list = drop.tolist()
         any_corrupt = bool(self.plan.corrupt_rate) or bool(corrupt_one.any())
         status = np.full(n, SENT, np.uint8)
@@ -424,13 +367,13 @@ class Device:
             self._send_range(table, t_us, i, j, drop_list, corrupt_one, any_corrupt, status, send_ns, t_list[i])
             i = j
         if i < n:  # stopped mid-table: the rest was never due
-            table = table.take(slice(0, i))
+            table = table[:i]
             status, send_ns, t_us, due = status[:i], send_ns[:i], t_us[:i], due[:i]
         self._account(table, status, send_ns, due)
         if self.keep_send_log:
             self._log_parts.append(
-                {"kind": table.kind, "wheel": table.wheel, "seq": table.seq, "t_us": t_us,
-                 "send_ns": send_ns, "status": status, "cycle": table.cycle, "slip": table.slip}
+                {"kind": table["kind"], "wheel": table["wheel"], "seq": table["seq"], "t_us": t_us,
+                 "send_ns": send_ns, "status": status, "cycle": table["cycle"], "slip": table["slip"]}
             )
 
     def _link_faults(self, t: float) -> None:
@@ -473,8 +416,6 @@ class Device:
     def _send_range(self, table, t_us, i, j, drop_list, corrupt_one, any_corrupt, status, send_ns, t_first) -> None:
         if not self._link_up(t_first):
             status[i:j] = LOST_DISCONNECTED if self._down_until is not None else UNSENT_NO_PEER
-            if self._down_until is None and hasattr(self.link, "recover"):
-                self.link.recover()
             return
         keep = [k for k in range(i, j) if not drop_list[k]]
         if j - i != len(keep):
@@ -491,20 +432,18 @@ class Device:
             self.counts["link_errors"] += 1
             status[keep] = UNSENT_LINK_ERROR
             self.announce(f"link error: {exc}")
-            if hasattr(self.link, "recover"):
-                self.link.recover()
             return
         send_ns[keep] = time.monotonic_ns()
         self.counts["bytes_sent"] += int(nbytes or 0)
         if touched is not None and touched.any():
             status[np.asarray(keep)[touched]] = CORRUPTED
 
-    def _account(self, table: FrameTable, status, send_ns, due) -> None:
+    def _account(self, table: np.ndarray, status, send_ns, due) -> None:
         """Fold one table's per-frame outcome into the counters."""
         tally = self.injector.tally
         nw = self.feed.n_wheels
-        imu = table.kind == KIND_IMU
-        wheel = table.wheel
+        imu = table["kind"] == KIND_IMU
+        wheel = table["wheel"]
         out = (status == SENT) | (status == CORRUPTED)
         tally.count_lost("frames_dropped", wheel[status == DROPPED])
         tally.count_lost("frames_corrupted", wheel[status == CORRUPTED])
@@ -521,17 +460,17 @@ class Device:
             for kind_imu, key in ((True, "last_imu_seq_by_wheel"), (False, "last_ref_seq_by_wheel")):
                 sel = np.flatnonzero(out & (imu == kind_imu) & (wheel == w))
                 if sel.size:
-                    c[key][w] = int(table.seq[sel[-1]])
+                    c[key][w] = int(table["seq"][sel[-1]])
         if np.isfinite(due).any():
             sent = send_ns >= 0
-            self._lateness.add(send_ns[sent] * 1e-9 - due[sent])
+            self._lateness.append((send_ns[sent] * 1e-9 - due[sent]).astype(np.float32))
 
     # -- results -----------------------------------------------------------------
     def report(self) -> dict:
         """What the device did: counts, injected faults, lateness, clock."""
         return {
             "device": "firmware-sim",
-            "link": getattr(self.link, "describe", lambda: {})(),
+            "link": self.link.describe(),
             "wheels": self.feed.n_wheels,
             "speed": self.speed,
             "clock": self.clock,
@@ -543,7 +482,7 @@ class Device:
             "faults_requested": self.plan.describe(),
             "sent": dict(self.counts),
             "injected": self.injector.tally.as_dict(),
-            "lateness": self._lateness.summary(),
+            "lateness": latency_summary(self._lateness),
         }
 
     def send_log(self) -> dict[str, np.ndarray]:

@@ -15,12 +15,13 @@ reconnection creates a new pair and announces it.
 :class:`PortLink` writes to an existing port with pyserial (a real UART, or
 one end of a ``socat`` pair); a disconnection closes and reopens it.
 
-Both encode frames with :mod:`slipest.io.serial_frames` (the device's wire
-format), vectorised per chunk.
+Both derive from :class:`SerialLink`: frames of :mod:`slipest.io.serial_frames`
+(the device's wire format), one ``bytes`` item per frame, delimiter included.
 """
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import fcntl
 import os
@@ -32,49 +33,13 @@ import tty
 from typing import Callable
 
 import numpy as np
+import serial
 
-from firmware_sim.device import KIND_IMU, KIND_REF, FrameTable, LinkDown
-from slipest.io.serial_frames import (
-    encode_frame,
-    encode_imu_sample,
-    encode_imu_samples,
-    encode_slip_reference,
-    encode_slip_references,
-)
+from firmware_sim.link import Link, LinkDown
+from slipest.io.serial_frames import encode_frame, encode_imu_sample, encode_slip_reference
 
 #: Type byte of the frames sent as "unknown" traffic (no such frame type exists).
 UNKNOWN_FRAME_TYPE = 0x7F
-_IMU_LEN = 24
-_REF_LEN = 20
-
-
-def encode_rows(table: FrameTable, t_us: np.ndarray, idx: list[int]) -> list[bytes]:
-    """One serial frame (bytes, delimiter included) per row ``idx`` of ``table``
-    (frame by frame for a few rows, vectorised for many)."""
-    if len(idx) < 32:
-        out = []
-        kind, wheel, seq, az, theta, slip = table.kind, table.wheel, table.seq, table.az, table.theta, table.slip
-        for k in idx:
-            if kind[k] == KIND_IMU:
-                out.append(encode_imu_sample(int(wheel[k]), int(seq[k]), int(t_us[k]), float(az[k]), float(theta[k])))
-            else:
-                out.append(encode_slip_reference(int(wheel[k]), int(seq[k]), int(t_us[k]), float(slip[k])))
-        return out
-    rows = np.asarray(idx)
-    out: list = [b""] * rows.size
-    kinds = table.kind[rows]
-    for kind, length in ((KIND_IMU, _IMU_LEN), (KIND_REF, _REF_LEN)):
-        pos = np.flatnonzero(kinds == kind)
-        if not pos.size:
-            continue
-        s = rows[pos]
-        if kind == KIND_IMU:
-            data = encode_imu_samples(table.wheel[s], table.seq[s], t_us[s], table.az[s], table.theta[s])
-        else:
-            data = encode_slip_references(table.wheel[s], table.seq[s], t_us[s], table.slip[s])
-        for k, p in enumerate(pos.tolist()):
-            out[p] = data[k * length : (k + 1) * length]
-    return out
 
 
 def unknown_frames(n: int, rng: np.random.Generator) -> bytes:
@@ -87,22 +52,20 @@ def unknown_frames(n: int, rng: np.random.Generator) -> bytes:
     return b"".join(out)
 
 
-class _BaseLink:
+class SerialLink(Link):
+    """A link carrying serial frames: items are ``bytes`` (faults may corrupt them)."""
+
     corrupts = True
-
-    def __init__(self, announce: Callable[[str], None] | None = None):
-        self.announce = announce or (lambda text: None)
-        self._down = False
-
-    def encode(self, table: FrameTable, t_us: np.ndarray, idx: list[int]) -> list:
-        return encode_rows(table, t_us, idx)
+    encode_imu = staticmethod(encode_imu_sample)
+    encode_reference = staticmethod(encode_slip_reference)
 
     def send_unknown(self, n: int, rng: np.random.Generator) -> int:
+        """``n`` CRC-valid frames of an unknown type (:func:`unknown_frames`), in one write."""
         self.send([unknown_frames(n, rng)])
         return n
 
 
-class PtyLink(_BaseLink):
+class PtyLink(SerialLink):
     """A pseudo-terminal pair created by the device; the receiver opens :attr:`path`."""
 
     def __init__(self, link_path: str | None = None, settle: float = 0.5, stall_timeout: float = 2.0,
@@ -137,7 +100,6 @@ class PtyLink(_BaseLink):
         self._poll = select.poll()
         self._poll.register(master, select.POLLOUT | select.POLLHUP)
         self._peer_since = None
-        self._down = False
         if self.link_path:
             tmp = f"{self.link_path}.{os.getpid()}.tmp"
             try:
@@ -275,7 +237,6 @@ class PtyLink(_BaseLink):
     def disconnect(self) -> None:
         """Close the master: the slave node disappears and the reader gets an error."""
         self._drain_then_close()
-        self._down = True
 
     def reconnect(self) -> None:
         """A new pseudo-terminal pair (announced; the link path follows it)."""
@@ -304,7 +265,7 @@ class PtyLink(_BaseLink):
         }
 
 
-class PortLink(_BaseLink):
+class PortLink(SerialLink):
     """An existing serial port (pyserial ``serial_for_url``): a UART, a socat pty end..."""
 
     def __init__(self, port: str, baudrate: int = 921600, write_timeout: float = 2.0,
@@ -314,15 +275,15 @@ class PortLink(_BaseLink):
         self.baudrate = baudrate
         self.write_timeout = write_timeout
         self.ser = None
+        self._down = False  # a planned outage: no reopening until reconnect()
         self._next_try = 0.0
+        self._last_error = "?"
 
     @property
     def name(self) -> str:
         return self.port
 
     def _try_open(self) -> bool:
-        import serial
-
         now = time.monotonic()
         if now < self._next_try:
             return False
@@ -339,7 +300,7 @@ class PortLink(_BaseLink):
     def open(self) -> None:
         self._down = False
         if not self._try_open():
-            raise OSError(f"cannot open {self.port}: {getattr(self, '_last_error', '?')}")
+            raise OSError(f"cannot open {self.port}: {self._last_error}")
 
     def ready(self) -> bool:
         if self.ser is not None:
@@ -348,12 +309,7 @@ class PortLink(_BaseLink):
             return False
         return self._try_open()
 
-    def recover(self) -> None:
-        self.close()
-
     def send(self, items) -> int:
-        import serial
-
         if self.ser is None:
             raise LinkDown(f"{self.port} closed")
         data = b"".join(items)
@@ -374,12 +330,10 @@ class PortLink(_BaseLink):
         self._try_open()
 
     def close(self) -> None:
-        if self.ser is not None:
-            try:
-                self.ser.close()
-            except Exception:
-                pass
-            self.ser = None
+        ser, self.ser = self.ser, None
+        if ser is not None:
+            with contextlib.suppress(serial.SerialException, OSError):  # the port is gone either way
+                ser.close()
 
     def describe(self) -> dict:
         return {"type": "port", "port": self.port, "baudrate": self.baudrate}

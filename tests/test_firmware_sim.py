@@ -18,10 +18,11 @@ import serial
 from firmware_sim.can_link import CanLink
 from firmware_sim.device import KIND_IMU, Device, ScenarioFeed, wrap_angle
 from firmware_sim.faults import FaultInjector, FaultPlan, parse_fault
+from firmware_sim.link import FRAME_TABLE_DTYPE, Link
 from firmware_sim.serial_link import PtyLink
 from slipest.io.bus_args import BusConfig
 from slipest.io.can_messages import CanDecoder, ImuMessage, SlipReferenceMessage
-from slipest.io.serial_frames import FrameDecoder, ImuSample, SlipReference, encode_imu_samples
+from slipest.io.serial_frames import FrameDecoder, ImuSample, SlipReference, encode_imu_sample
 from slipest.model.params import StickSlipParams
 from slipest.model.scenario import Scenario
 from tests.hil_support import firmware_sim, serial_device
@@ -39,12 +40,9 @@ def two_cycles(seed=1, slip=(0.2, 0.3)) -> Scenario:
 def test_feed_interleaves_wheels_in_time_order_with_a_reference_before_each_cycle():
     feed = ScenarioFeed([two_cycles(1), two_cycles(2)], send_reference=True)
     tables = list(feed)
-    kind = np.concatenate([t.kind for t in tables])
-    wheel = np.concatenate([t.wheel for t in tables])
-    seq = np.concatenate([t.seq for t in tables])
-    t = np.concatenate([t.t for t in tables])
-    theta = np.concatenate([t.theta for t in tables])
-    slip = np.concatenate([t.slip for t in tables])
+    assert all(tb.dtype == FRAME_TABLE_DTYPE for tb in tables)
+    kind, wheel, seq, t, theta, slip = (np.concatenate([tb[name] for tb in tables])
+                                        for name in ("kind", "wheel", "seq", "t", "theta", "slip"))
     assert (np.diff(t) >= 0).all()
     imu = kind == KIND_IMU
     for w in (0, 1):
@@ -57,20 +55,86 @@ def test_feed_interleaves_wheels_in_time_order_with_a_reference_before_each_cycl
     assert (kind[refs[:2] + 2] == KIND_IMU).all() and t[refs[2]] == pytest.approx(PERIOD, abs=1e-3)
     assert slip[refs].tolist() == pytest.approx([0.2, 0.2, 0.3, 0.3])
     # the wheels' noise differs (own seeds), the physics does not
-    az0 = np.concatenate([tb.az[(tb.kind == KIND_IMU) & (tb.wheel == 0)] for tb in tables])
-    az1 = np.concatenate([tb.az[(tb.kind == KIND_IMU) & (tb.wheel == 1)] for tb in tables])
+    az0 = np.concatenate([tb["az"][(tb["kind"] == KIND_IMU) & (tb["wheel"] == 0)] for tb in tables])
+    az1 = np.concatenate([tb["az"][(tb["kind"] == KIND_IMU) & (tb["wheel"] == 1)] for tb in tables])
     assert not np.array_equal(az0, az1) and abs(az0.mean() - az1.mean()) < 0.01
 
 
 def test_feed_duration_stops_the_stream():
     feed = ScenarioFeed([two_cycles()], duration=1.0)
-    t = np.concatenate([tb.t for tb in feed])
+    t = np.concatenate([tb["t"] for tb in feed])
     assert t.size == 1000 and t[-1] < 1.0
 
 
 def test_wrap_angle_is_minus_pi_to_pi():
     got = wrap_angle([math.pi, -math.pi, 3 * math.pi + 0.1]).tolist()
     assert got == pytest.approx([-math.pi, -math.pi, -math.pi + 0.1])
+
+
+# --- the Link contract ---------------------------------------------------------------------------
+
+
+def _mixed_rows(table) -> list[int]:
+    """Some IMU rows of both wheels and the references, in send order."""
+    refs = np.flatnonzero(table["kind"] != KIND_IMU)
+    assert refs.size >= 2
+    return sorted(set(range(0, len(table), 97)) | set(refs.tolist()))
+
+
+def test_serial_link_encodes_table_rows_as_frames_in_order():
+    table = next(iter(ScenarioFeed([two_cycles(1), two_cycles(2)], send_reference=True)))
+    t_us = 10**12 + np.arange(len(table), dtype=np.int64) * 167
+    table["seq"][-1] = 70000  # a counter beyond 16 bits: the link reduces it
+    idx = _mixed_rows(table) + [len(table) - 1]
+    items = PtyLink().encode(table, t_us, idx)
+    assert len(items) == len(idx) and all(isinstance(item, bytes) for item in items)
+    frames = FrameDecoder().feed(b"".join(items))
+    want = []
+    for k in idx:
+        r = table[k]
+        if r["kind"] == KIND_IMU:
+            want.append(ImuSample(int(r["wheel"]), int(r["seq"]) % 65536, int(t_us[k]),
+                                  float(np.float32(r["az"])), float(np.float32(r["theta"]))))
+        else:
+            want.append(SlipReference(int(r["wheel"]), int(r["seq"]), int(t_us[k]), float(np.float32(r["slip"]))))
+    assert frames == want
+
+
+def test_can_link_encodes_table_rows_as_dbc_messages_in_order():
+    table = next(iter(ScenarioFeed([two_cycles(1), two_cycles(2)], send_reference=True)))
+    t_us = 10**12 + np.arange(len(table), dtype=np.int64) * 167
+    idx = _mixed_rows(table)
+    link = CanLink(BusConfig("virtual", "fsim-encode", {}))
+    try:
+        items = link.encode(table, t_us, idx)
+    finally:
+        link.close()
+    dec = CanDecoder()
+    got = [dec.decode(msg) for msg in items]
+    assert len(got) == len(idx)
+    for k, rec in zip(idx, got):
+        r = table[k]
+        assert rec.wheel == r["wheel"] and rec.counter == r["seq"] % 256
+        assert rec.time_mod == pytest.approx((t_us[k] * 1e-6) % 0.65536, abs=1e-5)
+        if r["kind"] == KIND_IMU:
+            assert isinstance(rec, ImuMessage)
+            assert (rec.az, rec.theta) == pytest.approx((r["az"], r["theta"]), abs=0.005)
+        else:
+            assert isinstance(rec, SlipReferenceMessage) and rec.slip == pytest.approx(r["slip"], abs=1e-4)
+
+
+def test_links_declare_the_link_contract_and_the_device_checks_it():
+    assert issubclass(PtyLink, Link) and issubclass(CanLink, Link)
+    assert PtyLink.corrupts and not CanLink.corrupts
+
+    class Incomplete(Link):  # no transport: cannot be created
+        def encode_imu(self, wheel, seq, t_us, az, theta):
+            return b""
+
+    with pytest.raises(TypeError, match="abstract"):
+        Incomplete()
+    with pytest.raises(TypeError, match="Link"):
+        Device(ScenarioFeed([two_cycles()]), object())
 
 
 # --- faults (pure) --------------------------------------------------------------------------------
@@ -91,8 +155,7 @@ def test_fault_spec_parsing():
 
 def test_corrupted_frames_are_exactly_the_ones_the_decoder_rejects():
     n = 2000
-    frames_bytes = encode_imu_samples(0, np.arange(n), np.arange(n) * 1000, np.full(n, 9.81), np.zeros(n))
-    frames = [frames_bytes[i * 24:(i + 1) * 24] for i in range(n)]
+    frames = [encode_imu_sample(0, i, i * 1000, 9.81, 0.0) for i in range(n)]
     inj = FaultInjector(FaultPlan(corrupt_rate=0.01, seed=5), 1)
     out, lost = inj.corrupt_bytes(frames, np.zeros(n, bool))
     changed = np.array([a != b for a, b in zip(out, frames)])
@@ -115,8 +178,7 @@ def _trailing(mask) -> int:
 
 
 def _imu_burst(n: int, seq0: int = 0) -> bytes:
-    seq = seq0 + np.arange(n)
-    return encode_imu_samples(0, seq, seq * 1000, np.full(n, 9.81), np.zeros(n))
+    return b"".join(encode_imu_sample(0, seq, seq * 1000, 9.81, 0.0) for seq in range(seq0, seq0 + n))
 
 
 def _pty_reader(path: str, got: bytearray, opened: threading.Event) -> None:
