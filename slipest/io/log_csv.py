@@ -46,11 +46,13 @@ line number (every line counts: comments, blank lines and the header too) and
 what was wrong; with ``skip_bad=True`` they are counted and skipped instead
 (``LogReader.n_skipped``, ``LogReader.bad_rows``).
 
-Speed: the reader checks a whole block of lines at once for bytes no number
-can contain and hands the block to ``numpy.loadtxt``; a block with anything
-else (comments, blank lines, empty fields, bad rows, text in ignored
-columns) is checked line by line, which names the bad lines. The writer
-formats a chunk of rows with one ``%``-format. Figures: tools/bench_segmentation.py.
+Speed: the reader parses a block of lines at once. A block of fixed-point
+numbers (what :class:`LogWriter` writes) is read as integers and scaled; a
+block whose bytes can only be numbers goes to ``numpy.loadtxt``; a block with
+anything else (comments, blank lines, empty fields, bad rows, text in
+ignored columns) is checked line by line, which names the bad lines. All
+three give the values of ``float(text)``. The writer formats a chunk of rows
+with one ``%``-format. Figures: tools/bench_segmentation.py.
 """
 
 from __future__ import annotations
@@ -228,6 +230,51 @@ def _to_array(lines: Sequence[str], ncols: int) -> np.ndarray:
     if not lines:
         return np.empty((0, ncols), dtype=np.float64)
     return np.loadtxt(lines, delimiter=",", comments=None, dtype=np.float64, ndmin=2)
+
+
+_POW10 = np.array([float(10**k) for k in range(23)])  # exact: 10**22 is the largest exact power
+
+
+def _fixed_point(block: bytes, ncols: int) -> np.ndarray | None:
+    """:func:`_to_array` of a block of fixed-point rows, faster: every line
+    ``ncols`` fields ``-?digits.digits``, each column with one number of
+    decimals (as :class:`LogWriter` writes them), no other byte. The digits
+    are read as integers (numpy.loadtxt) and divided by 10**decimals; an
+    integer below 2**53 divided by an exact power of ten is the correctly
+    rounded double of the decimal, so the values are bit for bit those of
+    :func:`_to_array`. None for any other block."""
+    if block.translate(None, b"0123456789.,-\n"):
+        return None
+    a = np.frombuffer(block, dtype=np.uint8)
+    sep = np.flatnonzero(a <= 44)  # ',' and '\n' are the only bytes below '-'
+    if sep.size == 0 or sep.size % ncols:
+        return None
+    sep = sep.reshape(-1, ncols)
+    if not ((a[sep[:, :-1]] == 44).all() and (a[sep[:, -1]] == 10).all()):
+        return None
+    # each field holds exactly one point, its column's decimals (from the first row) before the end
+    start = np.concatenate(([-1], sep.ravel()[:-1])).reshape(sep.shape) + 1
+    dots = np.flatnonzero(a[: sep[0, -1]] == 46)
+    if dots.size != ncols or block.count(b".") != sep.size:
+        return None
+    dec = sep[0] - dots - 1
+    if dec.min() < 0 or dec.max() >= _POW10.size:
+        return None
+    dot = sep - dec - 1
+    if not ((dot >= start).all() and (a[dot] == 46).all()):
+        return None
+    try:
+        ints = np.loadtxt(block.replace(b".", b"").decode("ascii").split("\n")[:-1], delimiter=",",
+                          comments=None, dtype=np.int64, ndmin=2)
+    except ValueError:  # a misplaced '-', a field of a lone point or sign, too many digits
+        return None
+    if ints.shape != sep.shape or ints.max() >= 2**53 or ints.min() <= -(2**53):
+        return None
+    out = ints / _POW10[dec]
+    zero = ints == 0
+    if zero.any():  # "-0.00" is -0.0
+        out[zero & (a[start] == 45)] = -0.0
+    return out
 
 
 def _format_rows(cols: Sequence[np.ndarray], decimals: Sequence[int]) -> bytes:
@@ -647,14 +694,17 @@ class LogReader:
         """(nrows, nselected) array of one block of complete lines whose first
         line is ``first_line``.
 
-        Common case, checked for the whole block at once: every line a row of
-        numbers (no comment, blank line, empty field, other byte), which
-        numpy.loadtxt parses in one call. Any other block goes through
-        :meth:`_check_lines`, which keeps the comments and names the bad
-        lines; loadtxt then parses the rows it kept. The two give the same
-        values (tests/test_log_csv.py states it)."""
+        Common cases, checked for the whole block at once: fixed-point rows
+        (:func:`_fixed_point`), or rows of numbers only (no comment, blank
+        line, empty field, other byte), which numpy.loadtxt parses in one
+        call. Any other block goes through :meth:`_check_lines`, which keeps
+        the comments and names the bad lines; loadtxt then parses the rows it
+        kept. All give the same values (tests/test_log_csv.py states it)."""
         if b"\r" in block:
             block = block.replace(b"\r\n", b"\n")
+        arr = _fixed_point(block, self._ncols)
+        if arr is not None:
+            return arr if self._identity else arr[:, self._sel_idx]
         if _only_number_bytes(block) and b"\n\n" not in block and not block.startswith(b"\n"):
             lines = block.decode("ascii").split("\n")[:-1]
             try:
