@@ -3,10 +3,11 @@
 import io
 import math
 import os
+import re
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from slipest.io.log_csv import (
@@ -15,6 +16,8 @@ from slipest.io.log_csv import (
     LogMetadata,
     LogReader,
     LogWriter,
+    _fixed_point,
+    _to_array,
     read_log,
 )
 
@@ -110,8 +113,8 @@ def test_round_trip_property(rows):
         np.testing.assert_allclose(got[fin], want[fin], rtol=1e-15, atol=TOL[col])
 
 
-def test_large_values_use_exact_slow_path(tmp_path):
-    """Epoch timestamps (1.7e9 s) do not fit the fast formatter: still right."""
+def test_large_values_round_trip(tmp_path):
+    """Epoch timestamps (1.7e9 s) keep their microseconds."""
     t, az, theta, _ = sample_arrays(3000, t0=1.7e9)
     path = tmp_path / "epoch.csv"
     with LogWriter(path) as w:
@@ -123,7 +126,8 @@ def test_large_values_use_exact_slow_path(tmp_path):
 
 
 def test_reader_values_equal_python_float(tmp_path):
-    """Whatever path parses a block, values are exactly float(text)."""
+    """Values are exactly float(text), whether the block is checked at once
+    or line by line (the comment at the end sends it line by line)."""
     rng = np.random.default_rng(5)
     fields = []
     for _ in range(3000):
@@ -132,11 +136,12 @@ def test_reader_values_equal_python_float(tmp_path):
         fields.append(fmt % (int(x) if fmt == "%d" else x))
     fields += ["nan", "NaN", "-0.0", "5.", "-.25", "0007", "1e3", "+4.5", " 3.25 ", "inf"]
     lines = [f"{i}.0,{f},0.5" for i, f in enumerate(fields)]
-    path = write_text(tmp_path / "mix.csv", "t,az,theta\n" + "\n".join(lines) + "\n")
-    log = read_log(path)
     want = np.array([float(f) for f in fields])
-    np.testing.assert_array_equal(log.az, want)
-    np.testing.assert_array_equal(np.signbit(log.az), np.signbit(want))
+    for tail in ("", "# end\n"):
+        path = write_text(tmp_path / "mix.csv", "t,az,theta\n" + "\n".join(lines) + "\n" + tail)
+        log = read_log(path)
+        np.testing.assert_array_equal(log.az, want)
+        np.testing.assert_array_equal(np.signbit(log.az), np.signbit(want))
 
 
 _TOKEN = st.text(alphabet="0123456789.-naN", min_size=1, max_size=18)
@@ -172,6 +177,164 @@ def test_any_token_is_read_as_float_or_reported(tmp_path_factory, rows):
         got = np.column_stack([log.az, log.theta])
         np.testing.assert_array_equal(got, want)
         np.testing.assert_array_equal(np.signbit(got), np.signbit(want))
+
+
+# The number grammar (issue 13): plain decimal or exponent notation, nan, inf.
+_NUMBER = re.compile(r"[+-]?(?:(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|nan|inf)", re.IGNORECASE | re.ASCII)
+
+
+def _ref_number(tok):
+    """The reference reading of a field: float(text) if the grammar allows it, else None."""
+    core = tok.strip(" \t")
+    return float(core) if _NUMBER.fullmatch(core) else None
+
+
+@pytest.mark.parametrize(
+    "tok",
+    ["-1.5", ".5", "5.", "-.25", "1e-3", "+2E+05", "1.e5", "0007", "nan", "NaN", "-nan", "+NAN", "inf", "-Inf",
+     "+INF", " 3.25\t", "1e400", "-1e-400"],
+)
+def test_number_grammar_accepts(tmp_path, tok):
+    want = float(tok)
+    for tail in ("", "# end\n"):
+        log = read_log(write_text(tmp_path / "ok.csv", f"t,az,theta\n0,9.81,0\n1,{tok},0\n{tail}"))
+        got = log.az[1]
+        assert (math.isnan(got) and math.isnan(want)) or (got == want and math.copysign(1, got) == math.copysign(1, want))
+
+
+@pytest.mark.parametrize(
+    "tok",
+    ["9_8", "1_000.5", "\uff11\uff12", "\u0663", "1\u0663", "0x1f", "infinity", "Infinity", "nan(1)", "1e", "1e+",
+     "e5", ".", "-", "+", "--1", "+-1", "1.2.3", "3 .25", "1 2", "3\u00a0", "\u00a03", "\x0b3", "3\x0c", "1d3",
+     "1.5f", "\u0131nf", "na", "nanan", "infe", "1nan", "nan1", "\u2212" + "1"],
+)
+def test_number_grammar_rejects(tmp_path, tok):
+    """Python float() or numpy.loadtxt take several of these (9_8, infinity,
+    Unicode digits and spaces): the log format does not."""
+    for tail in ("", "# end\n"):
+        path = write_text(tmp_path / "bad.csv", f"t,az,theta\n0,9.81,0\n1,9.81,{tok}\n2,9.8,0.1\n{tail}")
+        with pytest.raises(LogFormatError) as ei:
+            read_log(path)
+        assert ei.value.line == 3
+        assert ei.value.reason == f"column 'theta': {tok.strip(' ' + chr(9))!r} is not a number"
+        log = read_log(path, skip_bad=True)
+        assert log.n_skipped == 1 and list(log.t) == [0.0, 2.0]
+
+
+_NASTY = st.sampled_from(
+    list("0123456789") * 3 + list(".+-eE naNAiIfF\t_x,#") + ["nan", "inf", "INF", "infinity", "1e5", "\u00a0",
+                                                             "\u0663", "\uff11", "\x0b", ""]
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.lists(_NASTY, min_size=0, max_size=8).map("".join), min_size=1, max_size=40), st.booleans())
+def test_fields_follow_the_grammar_on_both_paths(tmp_path_factory, toks, comment_at_end):
+    """Property: a row is read as float(text) iff each field follows the
+    grammar, else it is named (line, column, value). Whether the block is
+    checked at once (no comment) or line by line (a comment at the end), the
+    result is the same."""
+    d = tmp_path_factory.mktemp("g")
+    lines = [f"{i},{tok},0.5" for i, tok in enumerate(toks)]
+    text = "t,az,theta\n" + "\n".join(lines) + "\n" + ("# end\n" if comment_at_end else "")
+    path = d / "g.csv"
+    path.write_bytes(text.encode("utf-8"))
+    want, bad = [], []
+    for i, line in enumerate(lines):
+        fields = line.split(",")
+        if len(fields) != 3:
+            bad.append((i + 2, "expected 3 fields"))
+            continue
+        tok = fields[1]
+        if not tok.strip(" \t"):
+            bad.append((i + 2, "empty field in required column 'az'"))
+            continue
+        v = _ref_number(tok)
+        if v is None:
+            bad.append((i + 2, f"column 'az': {tok.strip(' ' + chr(9))[:40]!r} is not a number"))
+        else:
+            want.append(v)
+    if bad:
+        with pytest.raises(LogFormatError) as ei:
+            read_log(path)
+        assert ei.value.line == bad[0][0] and ei.value.reason.startswith(bad[0][1])
+    log = read_log(path, skip_bad=True, max_bad_reported=100)
+    assert [(b.line, b.reason[: len(r)]) for b, (_, r) in zip(log.bad_rows, bad)] == bad
+    assert log.n_skipped == len(bad)
+    np.testing.assert_array_equal(log.az, np.array(want, dtype=np.float64))
+    np.testing.assert_array_equal(np.signbit(log.az), np.signbit(np.array(want, dtype=np.float64)))
+    assert log.comments == ([(len(lines) + 2, "end")] if comment_at_end else [])
+
+
+def test_long_line_ending_in_newline_is_an_error(tmp_path):
+    """A line over 1 MiB is refused even when its newline comes in the same read."""
+    path = tmp_path / "long.csv"
+    path.write_bytes(b"t,az,theta\n0,9.81,0\n" + b"7" * ((1 << 20) + 10) + b"\n1,9.81,0\n")
+    for block in (1 << 16, 1 << 20, 4 << 20):
+        with pytest.raises(LogFormatError) as ei:
+            LogReader(path, block_bytes=block).read_all()
+        assert ei.value.line == 3 and "longer than" in ei.value.reason
+    with pytest.raises(LogFormatError, match="line 3: line longer than"):
+        read_log(io.StringIO(path.read_text()))
+    path.write_bytes(b"t,az,theta\n0,9.81,0\n1," + b"7" * ((1 << 20) - 8) + b",0\n")  # exactly 1 MiB
+    assert len(read_log(path)) == 2
+
+
+@st.composite
+def _fixed_point_blocks(draw):
+    """(block, ncols, well_formed): rows of '-?digits.digits' with one number
+    of decimals per column, sometimes edited at one place."""
+    ncols = draw(st.integers(1, 5))
+    decs = draw(st.lists(st.integers(0, 9), min_size=ncols, max_size=ncols))
+    nrows = draw(st.integers(1, 12))
+    rows = []
+    for _ in range(nrows):
+        fields = []
+        for d in decs:
+            ip = draw(st.text("0123456789", min_size=0 if d else 1, max_size=7))
+            fp = draw(st.text("0123456789", min_size=d, max_size=d))
+            fields.append(draw(st.sampled_from(["", "-"])) + ip + "." + fp)
+        rows.append(",".join(fields))
+    text = "\n".join(rows) + "\n"
+    edit = draw(st.one_of(st.none(), st.tuples(st.integers(0, len(text) - 1), st.sampled_from(list(".-,\n07") + [""]))))
+    if edit is not None:
+        i, c = edit
+        text = text[:i] + c + text[i + 1 :] if draw(st.booleans()) else text[:i] + c + text[i:]
+    return text.encode("ascii"), ncols, edit is None
+
+
+@settings(max_examples=400, deadline=None)
+@given(_fixed_point_blocks())
+@example((b"1.5,2.25\n1..,5\n", 2, False))  # row 2: a short field whose point would be the previous field's
+@example((b"-9223372036854775808.,1.\n", 2, True))  # the int64 minimum, 19 digits
+@example((b"-0.000,-.0,-0.\n", 3, True))  # negative zeros
+def test_fixed_point_path_equals_loadtxt_path(case):
+    """The fast path for fixed-point blocks gives bit for bit (sign of zero
+    included) what numpy.loadtxt gives, or declines; it does not decline a
+    well-formed block of at most 15 digits per field."""
+    block, ncols, well_formed = case
+    fast = _fixed_point(block, ncols)
+    lines = block.decode("ascii").split("\n")[:-1]
+    try:
+        ref = _to_array(lines, ncols)
+    except ValueError:
+        ref = None
+    if fast is not None:
+        assert ref is not None and ref.shape == fast.shape
+        np.testing.assert_array_equal(fast.view(np.uint64), ref.view(np.uint64))
+    elif well_formed:
+        assert max(len(f.replace("-", "").replace(".", "")) for f in block.decode().replace("\n", ",").split(",")[:-1]) > 15
+
+
+def test_writer_output_takes_the_fixed_point_path():
+    t, az, theta, slip = sample_arrays(2000)
+    buf = io.BytesIO()
+    with LogWriter(buf, ("t", "az", "theta", "slip")) as w:
+        w.write(t, -az, theta, slip=slip)
+    block = buf.getvalue().split(b"\n", 1)[1]
+    fast = _fixed_point(block, 4)
+    assert fast is not None
+    np.testing.assert_array_equal(fast, _to_array(block.decode().split("\n")[:-1], 4))
 
 
 def test_endless_line_is_an_error_not_a_memory_hog(tmp_path):
@@ -261,6 +424,34 @@ def test_comments_and_blank_lines_anywhere(tmp_path):
     assert log.comments == [(1, "nL=4"), (3, "operator: Ada"), (4, "slip = 0.3"), (8, "bump hit here")]
 
 
+def test_comments_blank_lines_and_text_columns_in_a_big_file(tmp_path):
+    """Comments, blank lines, empty optional fields and text in an ignored
+    column, scattered over many read blocks: every value and line number right."""
+    t, az, theta, slip = sample_arrays(30000, seed=3)
+    lines = ["t,az,theta,slip,label"]
+    want_comments = []
+    for i in range(t.size):
+        if i % 7001 == 5:
+            lines.append(f"# note {i}")
+            want_comments.append((len(lines), f"note {i}"))
+        if i % 9001 == 7:
+            lines.append("")
+        sl = "" if i % 5003 == 11 else f"{slip[i]:.7f}"
+        label = "stop" if i % 3 == 0 else "4.5"
+        lines.append(f"{t[i]:.6f},{az[i]:.6f},{theta[i]:.7f},{sl},{label}")
+    path = write_text(tmp_path / "mixed.csv", "\n".join(lines) + "\n")
+    for block in (1 << 20, 5000):
+        log = LogReader(path, block_bytes=block).read_all()
+        assert log.comments == want_comments
+        assert_close(log.t, t, "t")
+        assert_close(log.az, az, "az")
+        empty = np.arange(t.size) % 5003 == 11
+        assert np.isnan(log.slip[empty]).all()
+        assert_close(log.slip[~empty], slip[~empty], "slip")
+        with pytest.raises(LogFormatError, match="line 2: column 'label': 'stop' is not a number"):
+            LogReader(path, extra_columns=True, block_bytes=block).read_all()
+
+
 def test_writer_comment_between_rows(tmp_path):
     path = tmp_path / "wc.csv"
     with LogWriter(path) as w:
@@ -342,7 +533,8 @@ def test_skip_bad_counts_and_reports(tmp_path):
 
 
 def test_bad_row_far_into_a_big_file_has_right_line_number(tmp_path):
-    """Several read blocks: the fast path falls back and finds the line."""
+    """Several read blocks: the block holding the bad row is checked line by
+    line and the line named; the rows around it are unchanged."""
     t, az, theta, _ = sample_arrays(60000)
     path = tmp_path / "big.csv"
     with LogWriter(path, metadata={"nL": 4}) as w:
@@ -523,6 +715,45 @@ def test_writer_rejects_bad_input(tmp_path):
     w.close()
     with pytest.raises(ValueError, match="closed"):
         w.write([0.0], [1.0], [2.0], slip=[0.1])
+
+
+def _written_field(x, d):
+    """What the log holds for x at d decimals: '%.<d>f', minus sign dropped when it reads as zero."""
+    text = "%.*f" % (d, x)
+    return text[1:] if text.startswith("-") and float(text) == 0 else text
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    st.lists(
+        st.one_of(
+            st.floats(allow_nan=True, allow_infinity=True),
+            st.floats(min_value=-1e-6, max_value=1e-6),
+            st.sampled_from([0.0, -0.0, 0.5, -0.5, 1.5, -2.5, 5e-8, -5e-8, 4.9999999e-7, -4.9999999e-7]),
+        ),
+        min_size=0,
+        max_size=40,
+    ),
+    st.integers(0, 9),
+)
+def test_writer_text_is_percent_f_per_column(values, d):
+    """Each field is '%.<d>f' of its value (t 6, az 6, theta 7 decimals, the
+    extra column d), never '-0.000'."""
+    x = np.array(values, dtype=np.float64)
+    buf = io.StringIO()
+    with LogWriter(buf, ("t", "az", "theta", "x"), decimals={"x": d}) as w:
+        w.write(x, -x, x, x=x)
+    rows = buf.getvalue().splitlines()
+    assert rows[0] == "t,az,theta,x"
+    want = [",".join(_written_field(v, k) for v, k in ((a, 6), (-a, 6), (a, 7), (a, d))) for a in values]
+    assert rows[1:] == want
+
+
+def test_writer_default_decimals_per_column():
+    buf = io.StringIO()
+    with LogWriter(buf, ("t", "az", "theta", "slip", "current")) as w:
+        w.write([1 / 3], [2 / 3], [-1 / 3], slip=[1 / 7], current=[-2 / 7])
+    assert buf.getvalue().splitlines()[1] == "0.333333,0.666667,-0.3333333,0.1428571,-0.2857143"
 
 
 def test_writer_formats_special_values(tmp_path):

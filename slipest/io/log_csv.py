@@ -28,9 +28,13 @@ A UTF-8 text file (a leading byte order mark is ignored) with ``\\n`` (or
   may appear in any order; any other column is an *extra* column: allowed,
   ignored by default, parsed as numbers on request (``extra_columns``).
 * Each data row has exactly as many comma-separated fields as the header.
-  Values are decimal numbers; ``nan`` (any case) is a valid value (a sensor
-  dropout) and is passed through as NaN. An empty field is malformed in a
-  required column and NaN in an optional or extra column.
+  A value is a number in plain decimal or exponent notation (``-1.5``,
+  ``.5``, ``5.``, ``1e-3``, ``+2E+05``), or ``nan`` or ``inf`` (any case,
+  optional sign), with optional spaces or tabs around it; anything else
+  (``9_8``, ``0x1f``, ``infinity``, non-ASCII digits or spaces, ...) is
+  malformed. ``nan`` is a valid value (a sensor dropout) and is passed
+  through as NaN. An empty field is malformed in a required column and NaN
+  in an optional or extra column.
 
 Precision written by :class:`LogWriter` (fixed-point decimals, by column):
 ``t`` 6 (1 us), ``az`` 6 (1e-6 m/s^2), ``theta`` 7 (1e-7 rad), ``slip`` 7,
@@ -42,12 +46,13 @@ line number (every line counts: comments, blank lines and the header too) and
 what was wrong; with ``skip_bad=True`` they are counted and skipped instead
 (``LogReader.n_skipped``, ``LogReader.bad_rows``).
 
-Speed: both directions are vectorised with numpy (no per-row Python on the
-common path). The reader parses whole blocks of bytes with a fixed-point
-decimal parser; any block it cannot prove it parsed exactly (exponents,
-spaces, comments between rows, empty fields, bad rows, ...) is re-parsed by
-``numpy.loadtxt`` or, to find and name bad lines, line by line. The fast path
-therefore never hides a bad row.
+Speed: the reader parses a block of lines at once. A block of fixed-point
+numbers (what :class:`LogWriter` writes) is read as integers and scaled; a
+block whose bytes can only be numbers goes to ``numpy.loadtxt``; a block with
+anything else (comments, blank lines, empty fields, bad rows, text in
+ignored columns) is checked line by line, which names the bad lines. All
+three give the values of ``float(text)``. The writer formats a chunk of rows
+with one ``%``-format. Figures: tools/bench_segmentation.py.
 """
 
 from __future__ import annotations
@@ -59,7 +64,6 @@ from dataclasses import dataclass, field
 from typing import Iterator, Mapping, Sequence
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 
 __all__ = [
     "REQUIRED_COLUMNS",
@@ -199,250 +203,95 @@ class LogData:
 
 
 # ---------------------------------------------------------------------------
-# Fast vectorised fixed-point parser
+# Numbers: the grammar, the block check, the conversion, the formatter
 # ---------------------------------------------------------------------------
 
-_U64 = np.uint64
-_ALL = 0xFFFFFFFFFFFFFFFF
-# Byte masks keeping the bytes j >= s of an 8-byte little-endian word.
-_KEEP8 = np.array([(_ALL << (8 * s)) & _ALL for s in range(9)][:8] + [0], dtype=np.uint64)
-_P10U = np.array([10**i for i in range(20)], dtype=np.uint64)
-_P10F = np.array([10.0**i for i in range(23)])
-_FAST_ALLOWED = b"0123456789.-,\n"
-_TWO53 = _U64(2**53)
-_PAD = b"0" * 16  # zero digits before the first field: harmless to the parser
-_SW1, _SW2, _SW3 = _U64(10 * 256 + 1), _U64(100 * 65536 + 1), _U64(10000 * 2**32 + 1)
-_MASK16, _MASK32 = _U64(0x00FF00FF00FF00FF), _U64(0x0000FFFF0000FFFF)
+#: A number field (after removing spaces and tabs around it): plain decimal or
+#: exponent notation, ``nan`` or ``inf`` (any case), with an optional sign.
+_NUMBER_RE = re.compile(r"[+-]?(?:(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|nan|inf)", re.IGNORECASE | re.ASCII)
+# Bytes a block of rows holding only numbers may contain, letters of nan/inf aside.
+_NUMBER_BYTES = b"0123456789.,+-eE \t\n"
 
 
-def _swar8(w):
-    """In place: words of eight digit values (one per byte, first byte most
-    significant) -> the integers they spell (multiply-shift SWAR; the
-    products wrap modulo 2**64 by design)."""
-    w *= _SW1
-    w >>= _U64(8)
-    w &= _MASK16
-    w *= _SW2
-    w >>= _U64(16)
-    w &= _MASK32
-    w *= _SW3
-    w >>= _U64(32)
-    return w
+def _only_number_bytes(block: bytes) -> bool:
+    """True if ``block`` holds no byte a number field cannot contain (letters
+    only inside ``nan``/``inf``). Together with numpy.loadtxt accepting every
+    field this proves each field matches :data:`_NUMBER_RE`: loadtxt alone
+    also takes ``infinity`` and Unicode spaces, which this check excludes."""
+    if not block.translate(None, _NUMBER_BYTES):
+        return True
+    return not block.lower().replace(b"nan", b"").replace(b"inf", b"").translate(None, _NUMBER_BYTES)
 
 
-def _fast_parse(block: bytes, ncols: int):
-    """Parse complete data lines of plain decimals into an (nrows, ncols) array.
-
-    Returns ``(array, None)`` on success, ``(None, "values")`` when the line
-    structure is right (each line has ``ncols`` comma-separated fields, no
-    comments nor blank lines) but some field is not a plain decimal this
-    parser proves exact, or ``(None, "structure")`` otherwise. Plain decimals:
-    ``-?digits?.?digits?`` with at least one digit, at most 16 characters and
-    a mantissa below 2**53 (so the value is the correctly rounded double,
-    identical to ``float()``), or ``nan`` in any case.
-
-    Each field is right-aligned in a 16-byte window ending at its separator;
-    the digits are combined eight at a time inside uint64 words (SWAR), the
-    bytes of the previous fields are removed with a modulo by a power of ten,
-    and the decimal point is removed arithmetically.
-    """
-    rest = block.translate(None, _FAST_ALLOWED)
-    has_nan = False
-    if rest:
-        if rest.translate(None, b"naNA") or b"#" in block:
-            return None, _structure_status(block, ncols)
-        if rest.translate(None, b"na"):
-            block = block.lower()
-        n_nan = block.count(b"nan")
-        block = block.replace(b"nan", b"n")
-        if block.translate(None, _FAST_ALLOWED + b"n") or block.count(b"n") != n_nan:
-            return None, _structure_status(block, ncols)
-        has_nan = True
-    a = np.frombuffer(_PAD + block, dtype=np.uint8)
-    sepb = a < 45  # ',' and '\n' are the only allowed bytes below '-'
-    sep = np.flatnonzero(sepb)
-    nf = sep.size
-    if nf == 0 or nf % ncols:
-        return None, "structure"
-    seps = a[sep].reshape(-1, ncols)
-    if not ((seps[:, :-1] == 44).all() and (seps[:, -1] == 10).all()):
-        return None, "structure"
-    lens = np.diff(sep, prepend=15)
-    lens -= 1
-    if lens.min() < 1 or lens.max() > 16:
-        return None, "values"
-    z = a - np.uint8(48)
-    z *= z < 10  # digit values; every other byte 0
-    w = _swar8(sliding_window_view(z, 16)[sep - 16].view(np.uint64))
-    lo = np.minimum(lens, 8)
-    val = w[:, 0] % _P10U[lens - lo]
-    val *= _U64(100000000)
-    val += w[:, 1] % _P10U[lo]
-    # the decimal point counted as a zero digit: remove it
-    dp = np.flatnonzero(a == 46)
-    if dp.size == nf and (dp < sep).all() and (dp[1:] > sep[:-1]).all():
-        frac = sep - dp
-        frac -= 1
-        p = _P10U[frac]
-        hi = val // (p * _U64(10))
-        val -= hi * _U64(9) * p
-        ndot = 1
-    elif dp.size:
-        fd = np.searchsorted(sep, dp)
-        if (np.diff(fd) == 0).any():
-            return None, "values"
-        frac = np.zeros(nf, dtype=np.intp)
-        frac[fd] = sep[fd] - dp - 1
-        p = _P10U[frac[fd]]
-        v = val[fd]
-        hi = v // (p * _U64(10))
-        val[fd] = v - hi * _U64(9) * p
-        ndot = np.zeros(nf, dtype=np.intp)
-        ndot[fd] = 1
-    else:
-        frac = np.zeros(nf, dtype=np.intp)
-        ndot = 0
-    nneg = 0
-    has_neg = b"-" in block
-    if has_neg:
-        nneg = a[sep - lens] == 45  # a minus sign is only allowed first in its field
-        if int(np.count_nonzero(nneg)) != block.count(b"-"):
-            return None, "values"
-    if has_nan:
-        fn = np.searchsorted(sep, np.flatnonzero(a == 110))
-        if (lens[fn] != 1).any():
-            return None, "values"
-    if (lens - ndot - nneg).min() < 1:  # no digit (a lone 'n' counts as one)
-        return None, "values"
-    if (val >= _TWO53).any():
-        return None, "values"
-    out = val.astype(np.float64)
-    out /= _P10F[frac]
-    if has_neg:
-        np.negative(out, out=out, where=nneg)
-    if has_nan:
-        out[fn] = np.nan
-    return out.reshape(-1, ncols), None
+def _to_array(lines: Sequence[str], ncols: int) -> np.ndarray:
+    """Lines of ``ncols`` comma-separated numbers -> (nlines, ncols) float64
+    array, each value the correctly rounded double of its text (numpy.loadtxt;
+    ValueError on a field it cannot read or a changing field count)."""
+    if not lines:
+        return np.empty((0, ncols), dtype=np.float64)
+    return np.loadtxt(lines, delimiter=",", comments=None, dtype=np.float64, ndmin=2)
 
 
-def _structure_status(block: bytes, ncols: int) -> str:
-    """'values' if every line has exactly ncols fields and no line is blank
-    or a comment, else 'structure'."""
-    if b"#" in block:
-        return "structure"
+_POW10 = np.array([float(10**k) for k in range(23)])  # exact: 10**22 is the largest exact power
+
+
+def _fixed_point(block: bytes, ncols: int) -> np.ndarray | None:
+    """:func:`_to_array` of a block of fixed-point rows, faster: every line
+    ``ncols`` fields ``-?digits.digits``, each column with one number of
+    decimals (as :class:`LogWriter` writes them), no other byte. The digits
+    are read as integers (numpy.loadtxt) and divided by 10**decimals; an
+    integer below 2**53 divided by an exact power of ten is the correctly
+    rounded double of the decimal, so the values are bit for bit those of
+    :func:`_to_array`. None for any other block."""
+    if block.translate(None, b"0123456789.,-\n"):
+        return None
     a = np.frombuffer(block, dtype=np.uint8)
-    sep = np.flatnonzero((a == 44) | (a == 10))
+    sep = np.flatnonzero(a <= 44)  # ',' and '\n' are the only bytes below '-'
     if sep.size == 0 or sep.size % ncols:
-        return "structure"
-    seps = a[sep].reshape(-1, ncols)
-    if not ((seps[:, :-1] == 44).all() and (seps[:, -1] == 10).all()):
-        return "structure"
-    # blank line: a newline right after a newline (or at the start)
-    nl = sep[ncols - 1 :: ncols]
-    if nl[0] == 0 or (np.diff(nl) == 1).any():
-        return "structure"
-    return "values"
-
-
-# ---------------------------------------------------------------------------
-# Vectorised fixed-point formatter
-# ---------------------------------------------------------------------------
-
-_ASCII0 = _U64(0x3030303030303030)
-_SPECIAL = {
-    name: np.frombuffer(b"\0" * (8 - len(name)) + name, dtype=np.uint64)[0]
-    for name in (b"nan", b"inf")
-}
-_INT_LIMIT = 1e8  # integer parts must have at most 8 digits on the fast path
-_FAST_MAX_DECIMALS = 7
-_LASTBYTE1 = _U64(1 << 56)
-_H7F = _U64(0x7F7F7F7F7F7F7F7F)
-_H80 = _U64(0x8080808080808080)
-
-
-def _digit_bytes(v):
-    """uint64 values < 1e8 -> words holding their 8 decimal digits (values
-    0-9, one per byte, zero-padded, first byte = most significant digit)."""
-    hi = v // _U64(10000)
-    w = hi | ((v - hi * _U64(10000)) << _U64(32))
-    c = ((w * _U64(5243)) >> _U64(19)) & _U64(0x0000007F0000007F)  # lanes // 100
-    w = c | ((w - c * _U64(100)) << _U64(16))
-    e = ((w * _U64(103)) >> _U64(10)) & _U64(0x000F000F000F000F)  # lanes // 10
-    return e | ((w - e * _U64(10)) << _U64(8))
-
-
-def _ascii_int(dw):
-    """Digit words -> ASCII, with the leading zeros (all but the last digit)
-    turned into NUL bytes, which the formatter deletes."""
-    s = dw | _LASTBYTE1
-    s |= s << _U64(8)  # smear "a digit was nonzero" towards the later digits
-    s |= s << _U64(16)
-    s |= s << _U64(32)
-    s += _H7F  # high bit of every nonzero byte
-    s &= _H80
-    s >>= _U64(7)
-    s *= _U64(0x30)
-    s += dw
-    return s
-
-
-def _format_fast(cols: Sequence[np.ndarray], decimals: Sequence[int]) -> bytes | None:
-    """Format equal-length float64 columns as CSV rows (fixed point, at most
-    7 decimals); None if some value needs the slow path (|x| >= 1e8).
-
-    Each field is three little-endian words: [separator, sign], [8 integer
-    digits], ['.', 7 decimals]; unused bytes are NUL and deleted at the end.
-    The first separator is the newline of the previous row.
-    """
-    n = cols[0].shape[0]
-    rows = np.empty((n, 3 * len(cols)), dtype=np.uint64)
-    for c, (x, d) in enumerate(zip(cols, decimals)):
-        fin = np.isfinite(x)
-        allfin = bool(fin.all())
-        ax = np.abs(x) if allfin else np.where(fin, np.abs(x), 0.0)
-        scale = 10.0**d
-        sf = np.rint(ax * scale)
-        if not (sf < _INT_LIMIT * scale).all():
-            return None
-        s = sf.astype(np.uint64)
-        pd = _U64(10**d)
-        ip = s // pd
-        iw = _ascii_int(_digit_bytes(ip))
-        neg = (x < 0) & (s != 0)
-        if not allfin:
-            iw = np.where(fin, iw, np.where(np.isnan(x), _SPECIAL[b"nan"], _SPECIAL[b"inf"]))
-            neg |= x == -np.inf
-        w0 = rows[:, 3 * c]
-        np.multiply(neg, _U64(45 << 8), out=w0)
-        w0 |= _U64(10 if c == 0 else 44)
-        rows[:, 3 * c + 1] = iw
-        if d:
-            fw = _digit_bytes(s - ip * pd)
-            fw += _ASCII0
-            fw &= _KEEP8[8 - d]  # the last d digits; byte 0 becomes the point
-            fw |= _U64(46)
-            if not allfin:
-                fw[~fin] = 0
-            rows[:, 3 * c + 2] = fw
-        else:
-            rows[:, 3 * c + 2] = 0
-    return rows.tobytes().translate(None, b"\0")[1:] + b"\n"
-
-
-def _format_slow(cols: Sequence[np.ndarray], decimals: Sequence[int]) -> bytes:
-    fmt = ",".join(f"%.{d}f" for d in decimals) + "\n"
-    block = np.column_stack(cols)
-    return ((fmt * block.shape[0]) % tuple(block.ravel().tolist())).encode("ascii")
+        return None
+    sep = sep.reshape(-1, ncols)
+    if not ((a[sep[:, :-1]] == 44).all() and (a[sep[:, -1]] == 10).all()):
+        return None
+    # each field holds exactly one point, its column's decimals (from the first row) before the end
+    start = np.concatenate(([-1], sep.ravel()[:-1])).reshape(sep.shape) + 1
+    dots = np.flatnonzero(a[: sep[0, -1]] == 46)
+    if dots.size != ncols or block.count(b".") != sep.size:
+        return None
+    dec = sep[0] - dots - 1
+    if dec.min() < 0 or dec.max() >= _POW10.size:
+        return None
+    dot = sep - dec - 1
+    if not ((dot >= start).all() and (a[dot] == 46).all()):
+        return None
+    try:
+        ints = np.loadtxt(block.replace(b".", b"").decode("ascii").split("\n")[:-1], delimiter=",",
+                          comments=None, dtype=np.int64, ndmin=2)
+    except ValueError:  # a misplaced '-', a field of a lone point or sign, too many digits
+        return None
+    if ints.shape != sep.shape or ints.max() >= 2**53 or ints.min() <= -(2**53):
+        return None
+    out = ints / _POW10[dec]
+    zero = ints == 0
+    if zero.any():  # "-0.00" is -0.0
+        out[zero & (a[start] == 45)] = -0.0
+    return out
 
 
 def _format_rows(cols: Sequence[np.ndarray], decimals: Sequence[int]) -> bytes:
-    if cols[0].shape[0] == 0:
+    """Equal-length float64 columns -> CSV rows, ``%.<d>f`` per column
+    (correctly rounded; ``nan``, ``inf``, ``-inf``; a value that rounds to
+    zero is written without a minus sign)."""
+    n = cols[0].shape[0]
+    if n == 0:
         return b""
-    if max(decimals) <= _FAST_MAX_DECIMALS:
-        out = _format_fast(cols, decimals)
-        if out is not None:
-            return out
-    return _format_slow(cols, decimals)
+    fmt = ",".join(f"%.{d}f" for d in decimals) + "\n"
+    out = ((fmt * n) % tuple(np.column_stack(cols).ravel().tolist())).encode("ascii")
+    if b"-0" in out:
+        for d in set(decimals):
+            zero = b"0." + b"0" * d if d else b"0"
+            for end in (b",", b"\n"):
+                out = out.replace(b"-" + zero + end, zero + end)
+    return out
 
 
 # ---------------------------------------------------------------------------
@@ -486,7 +335,7 @@ class LogWriter:
     the fixed-point decimals per column (see :data:`DEFAULT_DECIMALS`).
     The header is written at construction, so a log with no rows is valid.
 
-    Writing is vectorised: 3.6 M rows format in about a second. Call
+    Rows are formatted a chunk at a time: 3.6 M rows take a few seconds. Call
     :meth:`flush` after each chunk (or pass ``flush_each_write=True``) so a
     live recording loses nothing when the process is interrupted.
     """
@@ -655,7 +504,8 @@ class LogReader:
     list of names parses those. ``skip_bad``: count and skip malformed rows
     instead of raising :class:`LogFormatError`; ``n_skipped`` counts them and
     ``bad_rows`` keeps the first ``max_bad_reported`` (line, reason).
-    ``block_bytes``: how much is read and parsed at a time (memory bound).
+    ``block_bytes``: how much is read and parsed at a time (memory bound;
+    at most 1 MiB).
 
     Errors in the rows are raised while iterating, when the block holding
     them is parsed (rows before it have already been yielded). A line longer
@@ -677,7 +527,7 @@ class LogReader:
         self.bad_rows: list[BadRow] = []
         self.comments: list[tuple[int, str]] = []
         self.n_rows = 0
-        self._block_bytes = max(int(block_bytes), 1024)
+        self._block_bytes = min(max(int(block_bytes), 1024), _MAX_LINE_BYTES)
         if isinstance(source, (str, bytes, os.PathLike)):
             self.source = os.fsdecode(source)
             self._stream = open(source, "rb")
@@ -687,7 +537,8 @@ class LogReader:
             self._stream = source
             self._owns = False
         self._text = _is_text_stream(self._stream)
-        self._pending = b""
+        self._pending = b""  # the start of a line whose end is not read yet
+        self._head = b""  # lines after the header, read with the preamble
         self._eof = False
         self._line = 0  # number of lines consumed so far
         self._started = False
@@ -700,7 +551,9 @@ class LogReader:
 
     # -- raw input -------------------------------------------------------
     def _read_raw(self) -> bytes:
-        data = self._stream.read(self._block_bytes)
+        """At most ``block_bytes`` bytes (a text stream: a quarter as many
+        characters, which UTF-8 encodes in at most four bytes each)."""
+        data = self._stream.read(self._block_bytes // 4 if self._text else self._block_bytes)
         if not data:
             return b""
         if self._text:
@@ -722,13 +575,20 @@ class LogReader:
                 cut = len(self._pending)
             if cut:
                 block, self._pending = self._pending[:cut], self._pending[cut:]
+                # a read is at most _MAX_LINE_BYTES: only the first line can span reads
+                # (the pending start of a line), so only it can be longer
+                if block.find(b"\n", 0, _MAX_LINE_BYTES + 1) < 0:
+                    self._too_long()
                 return block
             if self._eof:
                 return b""
             if len(self._pending) > _MAX_LINE_BYTES:
-                raise LogFormatError(
-                    f"line longer than {_MAX_LINE_BYTES} bytes (is this a text log?)", self.source, self._line + 1
-                )
+                self._too_long()
+
+    def _too_long(self):
+        raise LogFormatError(
+            f"line longer than {_MAX_LINE_BYTES} bytes (is this a text log?)", self.source, self._line + 1
+        )
 
     def _read_preamble(self) -> None:
         meta: dict[str, str] = {}
@@ -766,7 +626,7 @@ class LogReader:
                 self.header_line = self._line
                 break
             if header is not None:
-                self._pending = buf[start:] + self._pending
+                self._head = buf[start:]
         if header is None:
             raise LogFormatError(
                 "no header line (expected column names, e.g. 't,az,theta')", self.source, self._line or None
@@ -830,41 +690,40 @@ class LogReader:
         if len(self.bad_rows) < self.max_bad_reported:
             self.bad_rows.append(BadRow(line, reason))
 
-    def _parse_block(self, block: bytes, first_line: int):
-        """(nrows, nselected) array of one block of complete lines, and the
-        number of lines in the block."""
+    def _parse_block(self, block: bytes, first_line: int) -> np.ndarray:
+        """(nrows, nselected) array of one block of complete lines whose first
+        line is ``first_line``.
+
+        Common cases, checked for the whole block at once: fixed-point rows
+        (:func:`_fixed_point`), or rows of numbers only (no comment, blank
+        line, empty field, other byte), which numpy.loadtxt parses in one
+        call. Any other block goes through :meth:`_check_lines`, which keeps
+        the comments and names the bad lines; loadtxt then parses the rows it
+        kept. All give the same values (tests/test_log_csv.py states it)."""
         if b"\r" in block:
             block = block.replace(b"\r\n", b"\n")
-        arr, status = _fast_parse(block, self._ncols)
-        if arr is not None:  # one row per line
-            return (arr if self._identity else arr[:, self._sel_idx]), arr.shape[0]
-        nlines = block.count(b"\n")
-        if status == "values":
+        arr = _fixed_point(block, self._ncols)
+        if arr is not None:
+            return arr if self._identity else arr[:, self._sel_idx]
+        if _only_number_bytes(block) and b"\n\n" not in block and not block.startswith(b"\n"):
+            lines = block.decode("ascii").split("\n")[:-1]
             try:
-                text = block.decode("utf-8")
-                res = np.loadtxt(
-                    text.splitlines(),
-                    delimiter=",",
-                    usecols=self._sel_idx.tolist(),
-                    dtype=np.float64,
-                    ndmin=2,
-                    comments=None,
-                )
-                if res.shape[0] == nlines:
-                    return res, nlines
-            except (ValueError, UnicodeDecodeError):
-                pass
-        return self._parse_lines(block, first_line), nlines
+                arr = _to_array(lines, self._ncols)
+            except ValueError:  # a field that is no number, or a wrong field count
+                arr = None
+            if arr is not None and arr.shape == (len(lines), self._ncols):
+                return arr if self._identity else arr[:, self._sel_idx]
+        return _to_array(self._check_lines(block, first_line), len(self._sel_names))
 
-    def _parse_lines(self, block: bytes, first_line: int) -> np.ndarray:
+    def _check_lines(self, block: bytes, first_line: int) -> list[str]:
+        """The rows of a block reduced to the selected fields, each checked
+        against :data:`_NUMBER_RE` (an empty optional field becomes ``nan``).
+        Comments are kept, blank lines dropped, malformed rows reported
+        (:meth:`_bad`)."""
         ncols = self._ncols
-        sel = self._sel_idx.tolist()
-        req = self._required.tolist()
-        names = self._sel_names
+        columns = list(zip(self._sel_idx.tolist(), self._required.tolist(), self._sel_names))
         rows = []
-        nan = float("nan")
-        for i, raw in enumerate(block.split(b"\n")[:-1]):
-            line = first_line + i
+        for line, raw in enumerate(block.split(b"\n")[:-1], start=first_line):
             try:
                 text = raw.decode("utf-8")
             except UnicodeDecodeError as exc:
@@ -878,46 +737,40 @@ class LogReader:
                 continue
             fields = text.split(",")
             if len(fields) != ncols:
-                self._bad(
-                    line,
-                    f"expected {ncols} fields ({','.join(self.columns)}), found {len(fields)}",
-                )
+                self._bad(line, f"expected {ncols} fields ({','.join(self.columns)}), found {len(fields)}")
                 continue
-            row = []
-            ok = True
-            for j, r, name in zip(sel, req, names):
-                f = fields[j].strip()
+            values = []
+            for j, required, name in columns:
+                f = fields[j].strip(" \t")
                 if not f:
-                    if r:
+                    if required:
                         self._bad(line, f"empty field in required column {name!r}")
-                        ok = False
                         break
-                    row.append(nan)
-                    continue
-                try:
-                    row.append(float(f))
-                except ValueError:
+                    f = "nan"
+                elif not _NUMBER_RE.fullmatch(f):
                     self._bad(line, f"column {name!r}: {f[:40]!r} is not a number")
-                    ok = False
                     break
-            if ok:
-                rows.append(row)
-        if not rows:
-            return np.empty((0, len(sel)), dtype=np.float64)
-        return np.array(rows, dtype=np.float64)
+                values.append(f)
+            else:
+                rows.append(",".join(values))
+        return rows
+
+    def _blocks(self) -> Iterator[bytes]:
+        """The blocks of complete lines after the header."""
+        if self._head:
+            yield self._head
+            self._head = b""
+        while block := self._next_block():
+            yield block
 
     def _iter_blocks(self) -> Iterator[np.ndarray]:
         if self._started:
             raise RuntimeError(f"{self.source}: a LogReader can be iterated only once")
         self._started = True
         try:
-            while True:
-                block = self._next_block()
-                if not block:
-                    return
-                first = self._line + 1
-                arr, nlines = self._parse_block(block, first)
-                self._line += nlines
+            for block in self._blocks():
+                arr = self._parse_block(block, self._line + 1)
+                self._line += block.count(b"\n")
                 if arr.shape[0]:
                     self.n_rows += arr.shape[0]
                     yield arr
@@ -936,7 +789,7 @@ class LogReader:
 
     def iter_chunks(self, chunk_rows: int = 65536) -> Iterator[LogChunk]:
         """Yield :class:`LogChunk` s of exactly ``chunk_rows`` rows (the last
-        one may be shorter). Memory is bounded by one input block (1 MiB by default)
+        one may be shorter). Memory is bounded by one input block (at most 1 MiB)
         plus one chunk, whatever the size of the log."""
         if chunk_rows < 1:
             raise ValueError(f"chunk_rows must be >= 1, got {chunk_rows}")
