@@ -68,7 +68,6 @@ cycles may be estimated from.
 from __future__ import annotations
 
 import math
-from array import array
 from dataclasses import dataclass
 
 import numba
@@ -94,11 +93,16 @@ QUALITY_PRIORITY = (
 QUALITIES = ("ok",) + QUALITY_PRIORITY
 
 _TWO_PI = 2.0 * math.pi
-_INIT, _FORWARD, _REVERSE = 0, 1, 2
+_INIT, _FORWARD, _REVERSE = 0, 1, 2  # modes; _INIT (a fresh state) until the first valid sample
 _CLOSE_EPS = 1e-6  # rad; pre-check margin before the exact floor() test
-_BLOCK = 16384  # samples per vectorised step in push_many
-# bits of _window_checks' result
-_F_TIME, _F_GAP, _F_STOPPED, _F_NAN, _F_SATURATED = 1, 2, 4, 8, 16
+# a cycle's flags as bits, bit b standing for QUALITY_PRIORITY[b]
+_F_REVERSE, _F_TOO_LONG, _F_PARTIAL, _F_TIME, _F_GAP, _F_STOPPED, _F_NAN, _F_SATURATED, _F_SPARSE = (
+    1 << b for b in range(len(QUALITY_PRIORITY)))
+#: flags tuple (in priority order) of every combination of bits
+_FLAGS = tuple(tuple(f for b, f in enumerate(QUALITY_PRIORITY) if bits >> b & 1)
+               for bits in range(1 << len(QUALITY_PRIORITY)))
+# what _advance stopped for
+_DONE, _EMITTED, _FULL = 0, 1, 2
 
 
 @numba.njit(cache=True)
@@ -183,6 +187,194 @@ def _window_checks(t, az, ph, has_pre, pre_t, pre_ph, has_post, post_t, post_ph,
                 if a == c:
                     bits |= _F_SATURATED
     return bits
+
+
+_f8, _i8, _b1 = np.float64, np.int64, np.bool_
+#: A segmenter's whole state, one record read and written by the compiled :func:`_advance`.
+_STATE = np.dtype([
+    # settings (see CycleSegmenter; h = pi/nL, P = 2h, max_gap NaN: adaptive)
+    ("h", _f8), ("P", _f8), ("invP", _f8), ("close_ph", _f8), ("w0", _f8), ("w1", _f8), ("unwrap", _b1),
+    ("wlo", _f8), ("whi", _f8), ("reverse_tol", _f8), ("max_gap", _f8), ("gap_factor", _f8), ("max_dtheta", _f8),
+    ("stop_dtheta", _f8), ("stop_time", _f8), ("full_scale", _f8), ("min_samples", _i8), ("max_samples", _i8),
+    # the stream: mode, unwrapping, time order, progress (running max / min of theta), current cycle k
+    ("mode", _i8), ("resume", _b1), ("th_resume", _f8), ("have_raw", _b1), ("last_raw", _f8), ("nwrap", _i8),
+    ("last_t", _f8), ("has_prev", _b1), ("prev_t", _f8), ("prev_th", _f8), ("tmax", _f8), ("tmin", _f8),
+    ("k", _i8), ("mk", _f8), ("t_open", _f8), ("synced_here", _b1), ("sync_ph", _f8),
+    # the open cycle's window: samples stored (n) and seen (nwin), its neighbour samples, NaN seen
+    ("n", _i8), ("nwin", _i8), ("overflow", _b1), ("has_pre", _b1), ("pre_t", _f8), ("pre_ph", _f8),
+    ("has_post", _b1), ("post_t", _f8), ("post_ph", _f8), ("nanflag", _b1),
+    # counters
+    ("samples_seen", _i8), ("samples_invalid", _i8), ("samples_reverse", _i8), ("samples_overflow", _i8),
+    ("time_backwards", _i8), ("time_duplicate", _i8), ("wraps", _i8), ("reversals", _i8), ("resyncs", _i8),
+    ("cycles_skipped", _i8),
+    # the cycle just emitted (its window is buf[:, :e_n] until _advance runs again)
+    ("e_k", _i8), ("e_t_open", _f8), ("e_t_end", _f8), ("e_n", _i8), ("e_nwin", _i8), ("e_bits", _i8),
+])
+
+
+@numba.njit(cache=True)
+def _open_cycle(s):
+    """Empty the window of the cycle now open."""
+    s.n = 0
+    s.nwin = 0
+    s.overflow = False
+    s.has_pre = False
+    s.has_post = False
+    s.nanflag = False
+
+
+@numba.njit(cache=True)
+def _emit(s, buf, clip_values, t_end, reason):
+    """Describe the open cycle, ending at ``t_end`` [s], in ``s.e_*``; ``reason``: 0 or ``_F_REVERSE``."""
+    n = s.n
+    bits = reason
+    partial = s.synced_here and s.sync_ph >= s.w0
+    if partial:
+        bits |= _F_PARTIAL
+    if s.overflow:
+        bits |= _F_TOO_LONG
+        n = 0
+    else:
+        if n:
+            bits |= _window_checks(buf[0, :n], buf[1, :n], buf[2, :n], s.has_pre, s.pre_t, s.pre_ph, s.has_post,
+                                   s.post_t, s.post_ph, s.max_gap, s.gap_factor, s.max_dtheta, s.stop_dtheta,
+                                   s.stop_time, s.full_scale, clip_values)
+        elif not partial and reason == 0:
+            bits |= _F_GAP
+        if s.nanflag:
+            bits |= _F_NAN
+    if s.nwin < s.min_samples:
+        bits |= _F_SPARSE
+    s.e_k = s.k
+    s.e_t_open = s.t_open
+    s.e_t_end = t_end
+    s.e_n = n
+    s.e_nwin = s.nwin
+    s.e_bits = bits
+
+
+@numba.njit(cache=True)
+def _advance(st, buf, t, az, theta, i, clip_values):
+    """Run the segmenter ``st[0]`` (a :data:`_STATE` record) over samples ``i, i+1, ...`` of ``t`` [s],
+    ``az`` [m/s^2], ``theta`` [rad], ``buf`` (3 x capacity) holding the window's t, az, theta_phase.
+
+    Returns ``(i, what)``: ``_DONE`` (``i == t.size``), or it stopped early and is to be called again from ``i``
+    after the caller has taken the cycle just emitted (``_EMITTED``: ``s.e_*`` and ``buf[:, :s.e_n]``) or given
+    it a larger buffer (``_FULL``)."""
+    s = st[0]
+    n_in = t.size
+    while i < n_in:
+        ti = t[i]
+        if s.resume:  # the window step of sample i is still to do
+            s.resume = False
+            th = s.th_resume
+        else:
+            s.samples_seen += 1
+            raw = theta[i]
+            if not (ti - ti == 0.0 and raw - raw == 0.0):
+                s.samples_invalid += 1
+                if s.mode == _FORWARD and s.tmax - s.mk < s.w1:
+                    s.nanflag = True
+                i += 1
+                continue
+            th = raw
+            if s.unwrap:
+                if s.have_raw:
+                    d = raw - s.last_raw
+                    if d < -s.wlo:
+                        if d > -s.whi:
+                            s.nwrap += 1
+                            s.wraps += 1
+                    elif s.wlo < d < s.whi:
+                        s.nwrap -= 1
+                        s.wraps += 1
+                s.have_raw = True
+                s.last_raw = raw
+                th = raw + s.nwrap * _TWO_PI
+            if ti < s.last_t:
+                s.time_backwards += 1
+            elif ti == s.last_t:
+                s.time_duplicate += 1
+            s.last_t = ti
+            if s.mode == _FORWARD:
+                if th < s.tmax - s.reverse_tol:
+                    _emit(s, buf, clip_values, ti, _F_REVERSE)
+                    s.mode = _REVERSE
+                    s.tmin = th
+                    s.reversals += 1
+                    s.samples_reverse += 1
+                    _open_cycle(s)
+                    return i + 1, _EMITTED
+                if th > s.tmax:
+                    s.tmax = th
+                if s.tmax - s.mk >= s.close_ph:
+                    knew = math.floor((s.tmax + s.h) * s.invP)
+                    if knew > s.k:
+                        if not s.has_post:
+                            s.has_post = True
+                            s.post_t = ti
+                            s.post_ph = th - s.mk
+                        _emit(s, buf, clip_values, ti, 0)
+                        s.cycles_skipped += knew - s.k - 1
+                        s.k = knew
+                        s.mk = knew * s.P
+                        s.t_open = ti
+                        s.synced_here = False
+                        _open_cycle(s)
+                        s.resume = True
+                        s.th_resume = th
+                        return i, _EMITTED
+            else:
+                if s.mode == _REVERSE:
+                    if th < s.tmin:
+                        s.tmin = th
+                    if not th > s.tmin + s.reverse_tol:
+                        s.samples_reverse += 1
+                        i += 1
+                        continue
+                # start a cycle on this sample with no history
+                s.mode = _FORWARD
+                s.tmax = th
+                s.k = math.floor((th + s.h) * s.invP)
+                s.mk = s.k * s.P
+                s.t_open = ti
+                s.synced_here = True
+                s.sync_ph = th - s.mk
+                s.has_prev = False
+                s.resyncs += 1
+                _open_cycle(s)
+        # the window step: store the sample if the running maximum is inside the window
+        mk = s.mk
+        ph = s.tmax - mk
+        if s.w0 <= ph < s.w1:
+            m = s.n
+            cap = buf.shape[1]
+            if m == cap and cap < s.max_samples:
+                s.resume = True
+                s.th_resume = th
+                return i, _FULL
+            if s.nwin == 0 and s.has_prev:
+                s.has_pre = True
+                s.pre_t = s.prev_t
+                s.pre_ph = s.prev_th - mk
+            s.nwin += 1
+            if m < cap:
+                buf[0, m] = ti
+                buf[1, m] = az[i]
+                buf[2, m] = th - mk
+                s.n = m + 1
+            else:
+                s.overflow = True
+                s.samples_overflow += 1
+        elif ph >= s.w1 and not s.has_post:
+            s.has_post = True
+            s.post_t = ti
+            s.post_ph = th - mk
+        s.prev_t = ti
+        s.prev_th = th
+        s.has_prev = True
+        i += 1
+    return i, _DONE
 
 
 @dataclass(frozen=True, eq=False)
@@ -330,88 +522,34 @@ class CycleSegmenter:
         self.min_samples = int(min_samples)
         self.max_samples = int(max_samples)
         self.initial_capacity = int(min(initial_capacity, max_samples))
-        # derived constants
-        self._h = h
-        self._P = 2.0 * h
-        self._invP = 1.0 / self._P
-        self._close_ph = h - _CLOSE_EPS
-        self._w0, self._w1 = w0, w1
-        self._wlo = _TWO_PI - self.wrap_tol
-        self._whi = _TWO_PI + self.wrap_tol
-        self._unwrap = theta_wrap == "auto"
+        self._fresh = np.zeros(1, _STATE)  # the state of a new stream
+        for name, value in dict(
+            h=h, P=2.0 * h, invP=1.0 / (2.0 * h), close_ph=h - _CLOSE_EPS, w0=w0, w1=w1,
+            unwrap=theta_wrap == "auto", wlo=_TWO_PI - self.wrap_tol, whi=_TWO_PI + self.wrap_tol,
+            reverse_tol=self.reverse_tol, max_gap=math.nan if max_gap is None else self.max_gap,
+            gap_factor=self.gap_factor, max_dtheta=self.max_dtheta, stop_dtheta=self.stop_dtheta,
+            stop_time=self.stop_time, full_scale=self.full_scale, min_samples=self.min_samples,
+            max_samples=self.max_samples, last_t=-math.inf,
+        ).items():
+            self._fresh[name] = value
+        self._buf = np.empty((3, self.initial_capacity))
+        one = np.zeros(3)
+        self._one = one
+        self._one_t, self._one_az, self._one_theta = one[0:1], one[1:2], one[2:3]
         self.reset()
-        # load the compiled window checks now, not on the first cycle's close
-        one = np.zeros(1)
-        _window_checks(one, one, one, False, 0.0, 0.0, False, 0.0, 0.0, math.nan, self.gap_factor, self.max_dtheta,
-                       self.stop_dtheta, self.stop_time, self.full_scale, self.clip_values)
+        # load the compiled segmenter now, not on the first sample
+        _advance(self._fresh.copy(), self._buf, one[:0], one[:0], one[:0], 0, self.clip_values)
 
     # ------------------------------------------------------------------
     def reset(self) -> None:
         """Forget the stream (buffers keep their current capacity)."""
-        self._mode = _INIT
-        self._have_raw = False
-        self._last_raw = 0.0
-        self._nwrap = 0
-        self._last_t = -math.inf  # last valid sample's time, any mode
-        self._prev_t = 0.0
-        self._prev_th = 0.0
-        self._has_prev = False
-        self._tmax = 0.0
-        self._tmin = 0.0
-        self._k = 0
-        self._mk = 0.0
-        self._t_open = 0.0
-        self._synced_here = False
-        self._sync_ph = 0.0
-        if not hasattr(self, "_cap"):
-            self._alloc(self.initial_capacity)
-        self._clear_cycle()
-        self._c_seen = 0
-        self._c_invalid = 0
-        self._c_reverse = 0
-        self._c_overflow = 0
-        self._c_back = 0
-        self._c_dup = 0
-        self._c_wraps = 0
-        self._c_reversals = 0
-        self._c_skipped = 0
-        self._c_syncs = 0
+        self._st = self._fresh.copy()
         self._c_cycles = dict.fromkeys(QUALITIES, 0)
 
-    def _alloc(self, cap: int) -> None:
-        old = None
-        if hasattr(self, "_cap"):
-            old = (self._bt_np, self._baz_np, self._bph_np, self._n)
-        self._cap = cap
-        self._bt = array("d", bytes(8 * cap))
-        self._baz = array("d", bytes(8 * cap))
-        self._bph = array("d", bytes(8 * cap))
-        self._bt_np = np.frombuffer(self._bt, dtype=np.float64)
-        self._baz_np = np.frombuffer(self._baz, dtype=np.float64)
-        self._bph_np = np.frombuffer(self._bph, dtype=np.float64)
-        if old is not None:
-            n = old[3]
-            self._bt_np[:n] = old[0][:n]
-            self._baz_np[:n] = old[1][:n]
-            self._bph_np[:n] = old[2][:n]
-
-    def _clear_cycle(self) -> None:
-        self._n = 0  # samples stored
-        self._nwin = 0  # samples the window had (stored + overflow)
-        self._overflow = False
-        self._has_pre = False
-        self._pre_t = 0.0
-        self._pre_ph = 0.0
-        self._has_post = False
-        self._post_t = 0.0
-        self._post_ph = 0.0
-        self._nanflag = False
-
-    # ------------------------------------------------------------------
     @property
     def buffer_capacity(self) -> int:
         """Current capacity (samples) of each window buffer."""
-        return self._cap
+        return self._buf.shape[1]
 
     @property
     def counters(self) -> dict:
@@ -421,364 +559,65 @@ class CycleSegmenter:
         ``time_duplicate``; ``wraps``; ``reversals``; ``resyncs`` (stream start
         included); ``cycles_skipped`` (cycles jumped over without a sample);
         ``cycles_emitted`` and ``cycles_<quality>`` for every quality."""
-        c = {
-            "samples_seen": self._c_seen,
-            "samples_dropped": self._c_invalid + self._c_reverse + self._c_overflow,
-            "samples_invalid": self._c_invalid,
-            "samples_reverse": self._c_reverse,
-            "samples_overflow": self._c_overflow,
-            "time_backwards": self._c_back,
-            "time_duplicate": self._c_dup,
-            "wraps": self._c_wraps,
-            "reversals": self._c_reversals,
-            "resyncs": self._c_syncs,
-            "cycles_skipped": self._c_skipped,
-            "cycles_emitted": sum(self._c_cycles.values()),
-        }
+        s = self._st[0]
+        dropped = ("samples_invalid", "samples_reverse", "samples_overflow")
+        c = {"samples_seen": int(s["samples_seen"]), "samples_dropped": sum(int(s[k]) for k in dropped)}
+        for k in dropped + ("time_backwards", "time_duplicate", "wraps", "reversals", "resyncs", "cycles_skipped"):
+            c[k] = int(s[k])
+        c["cycles_emitted"] = sum(self._c_cycles.values())
         for q in QUALITIES:
             c[f"cycles_{q}"] = self._c_cycles[q]
         return c
-
-    # ------------------------------------------------------------------
-    def _sync(self, t: float, th: float) -> None:
-        """Start a cycle on sample (t, th) with no history."""
-        self._mode = _FORWARD
-        self._tmax = th
-        self._k = k = math.floor((th + self._h) * self._invP)
-        self._mk = k * self._P
-        self._t_open = t
-        self._synced_here = True
-        self._sync_ph = th - self._mk
-        self._has_prev = False
-        self._c_syncs += 1
-        self._clear_cycle()
-
-    def _grow(self) -> bool:
-        if self._cap >= self.max_samples:
-            return False
-        self._alloc(min(2 * self._cap, self.max_samples))
-        return True
-
-    def _emit(self, t_end: float, reason: str | None) -> LegCycle:
-        """Build the LegCycle of the current cycle (state is not changed)."""
-        n = self._n
-        w0 = self._w0
-        flags = []
-        if reason is not None:
-            flags.append(reason)
-        if self._overflow:
-            flags.append("too_long")
-            t = az = ph = np.empty(0)
-        else:
-            t = self._bt_np[:n].copy()
-            az = self._baz_np[:n].copy()
-            ph = self._bph_np[:n].copy()
-        partial = self._synced_here and self._sync_ph >= w0
-        if partial:
-            flags.append("partial")
-        if not self._overflow:
-            if n:
-                bits = _window_checks(t, az, ph, self._has_pre, self._pre_t, self._pre_ph, self._has_post, self._post_t,
-                                      self._post_ph, math.nan if self.max_gap is None else self.max_gap,
-                                      self.gap_factor, self.max_dtheta, self.stop_dtheta, self.stop_time,
-                                      self.full_scale, self.clip_values)
-                if bits & _F_TIME:
-                    flags.append("time")
-                if bits & _F_GAP:
-                    flags.append("gap")
-                if bits & _F_STOPPED:
-                    flags.append("stopped")
-                if self._nanflag or bits & _F_NAN:
-                    flags.append("nan")
-                if bits & _F_SATURATED:
-                    flags.append("saturated")
-            else:
-                if not partial and reason is None:
-                    flags.append("gap")
-                if self._nanflag:
-                    flags.append("nan")
-        if self._nwin < self.min_samples:
-            flags.append("sparse")
-        flags = tuple(f for f in QUALITY_PRIORITY if f in flags)
-        quality = flags[0] if flags else "ok"
-        self._c_cycles[quality] += 1
-        for arr_ in (t, az, ph):
-            arr_.flags.writeable = False
-        return LegCycle(self._k, self._t_open, t_end, t, az, ph, self._nwin, quality, flags)
-
-    def _close(self, t: float, th: float, knew: int) -> LegCycle:
-        """Close the current cycle on its closing sample (t, th); open knew."""
-        if not self._has_post:
-            self._has_post = True
-            self._post_t = t
-            self._post_ph = th - self._mk
-        cyc = self._emit(t, None)
-        self._c_skipped += knew - self._k - 1
-        self._k = knew
-        self._mk = knew * self._P
-        self._t_open = t
-        self._synced_here = False
-        self._clear_cycle()
-        return cyc
-
-    def _reverse(self, t: float, th: float) -> LegCycle:
-        cyc = self._emit(t, "reverse")
-        self._mode = _REVERSE
-        self._tmin = th
-        self._c_reversals += 1
-        self._c_reverse += 1
-        self._clear_cycle()
-        return cyc
 
     # ------------------------------------------------------------------
     def push(self, t: float, az: float, theta: float) -> list:
         """Add one sample: ``t`` [s], ``az`` [m/s^2], ``theta`` [rad].
 
         Returns the cycles it completed (usually none, at most one)."""
-        self._c_seen += 1
-        t = float(t)
-        theta = float(theta)
-        if not (t - t == 0.0 and theta - theta == 0.0):
-            self._c_invalid += 1
-            if self._mode == _FORWARD and self._tmax - self._mk < self._w1:
-                self._nanflag = True
-            return []
-        az = float(az)
-        if self._unwrap:
-            if self._have_raw:
-                d = theta - self._last_raw
-                if d < -self._wlo:
-                    if d > -self._whi:
-                        self._nwrap += 1
-                        self._c_wraps += 1
-                elif d > self._wlo and d < self._whi:
-                    self._nwrap -= 1
-                    self._c_wraps += 1
-            else:
-                self._have_raw = True
-            self._last_raw = theta
-            th = theta + self._nwrap * _TWO_PI
-        else:
-            th = theta
-        if t <= self._last_t:
-            if t < self._last_t:
-                self._c_back += 1
-            else:
-                self._c_dup += 1
-        self._last_t = t
-        out = []
-        mode = self._mode
-        if mode != _FORWARD:
-            if mode == _REVERSE:
-                if th < self._tmin:
-                    self._tmin = th
-                    self._c_reverse += 1
-                    return out
-                if not th > self._tmin + self.reverse_tol:
-                    self._c_reverse += 1
-                    return out
-            self._sync(t, th)
-        else:
-            tmax = self._tmax
-            if th < tmax - self.reverse_tol:
-                out.append(self._reverse(t, th))
-                return out
-            if th > tmax:
-                self._tmax = tmax = th
-            if tmax - self._mk >= self._close_ph:
-                knew = math.floor((tmax + self._h) * self._invP)
-                if knew > self._k:
-                    out.append(self._close(t, th, knew))
-        mk = self._mk
-        ph = self._tmax - mk
-        if self._w0 <= ph < self._w1:
-            n = self._n
-            if self._nwin == 0 and self._has_prev:
-                self._has_pre = True
-                self._pre_t = self._prev_t
-                self._pre_ph = self._prev_th - mk
-            self._nwin += 1
-            if n < self._cap or self._grow():
-                self._bt[n] = t
-                self._baz[n] = az
-                self._bph[n] = th - mk
-                self._n = n + 1
-            else:
-                self._overflow = True
-                self._c_overflow += 1
-        elif ph >= self._w1 and not self._has_post:
-            self._has_post = True
-            self._post_t = t
-            self._post_ph = th - mk
-        self._prev_t = t
-        self._prev_th = th
-        self._has_prev = True
-        return out
+        one = self._one
+        one[0] = t
+        one[1] = az
+        one[2] = theta
+        return self._run(self._one_t, self._one_az, self._one_theta)
 
-    # ------------------------------------------------------------------
     def push_many(self, t, az, theta) -> list:
         """Add a chunk of samples (equal-length 1-D arrays: ``t`` [s], ``az``
         [m/s^2], ``theta`` [rad]). Returns the cycles completed, in order;
         exactly what :meth:`push` on each sample would have returned."""
-        t = np.asarray(t, dtype=np.float64)
-        az = np.asarray(az, dtype=np.float64)
-        raw = np.asarray(theta, dtype=np.float64)
-        if t.ndim != 1 or az.shape != t.shape or raw.shape != t.shape:
+        t = np.ascontiguousarray(t, dtype=np.float64)
+        az = np.ascontiguousarray(az, dtype=np.float64)
+        theta = np.ascontiguousarray(theta, dtype=np.float64)
+        if t.ndim != 1 or az.shape != t.shape or theta.shape != t.shape:
             raise ValueError(
-                f"push_many() needs equal-length 1-D arrays, got t{t.shape}, az{az.shape}, theta{raw.shape}"
+                f"push_many() needs equal-length 1-D arrays, got t{t.shape}, az{az.shape}, theta{theta.shape}"
             )
-        n = t.shape[0]
-        out: list = []
-        if n == 0:
-            return out
-        self._c_seen += n
-        valid = np.isfinite(t) & np.isfinite(raw)
-        nan_after = None
-        if not valid.all():
-            nvalid_before = np.cumsum(valid) - valid  # valid samples before each sample
-            inv = ~valid
-            self._c_invalid += int(inv.sum())
-            prev_valid = nvalid_before[inv] - 1  # index (in valid arrays) preceding each invalid sample
-            t, az, raw = t[valid], az[valid], raw[valid]
-            m = t.shape[0]
-            if (prev_valid < 0).any() and self._mode == _FORWARD and self._tmax - self._mk < self._w1:
-                self._nanflag = True
-            nan_after = np.zeros(m, dtype=bool)
-            nan_after[prev_valid[prev_valid >= 0]] = True
-        m = t.shape[0]
-        if m == 0:
-            return out
-        # unwrap
-        if self._unwrap:
-            first = raw[0] if not self._have_raw else self._last_raw
-            d = np.diff(raw, prepend=first)
-            fwd = (d < -self._wlo) & (d > -self._whi)
-            bwd = (d > self._wlo) & (d < self._whi)
-            corr = fwd.astype(np.int64) - bwd
-            nz = int(np.count_nonzero(corr))
-            if nz:
-                nw = np.cumsum(corr)
-                nw += self._nwrap
-                th = raw + nw * _TWO_PI
-                self._nwrap = int(nw[-1])
-                self._c_wraps += nz
-            else:
-                th = raw + self._nwrap * _TWO_PI
-            self._have_raw = True
-            self._last_raw = float(raw[-1])
-        else:
-            th = raw
-        # time order
-        dt = np.diff(t, prepend=self._last_t)
-        self._c_back += int(np.count_nonzero(dt < 0))
-        self._c_dup += int(np.count_nonzero(dt == 0))
-        self._last_t = float(t[-1])
-        p = 0
-        rtol = self.reverse_tol
-        while p < m:
-            mode = self._mode
-            if mode != _FORWARD:
-                if mode == _REVERSE:
-                    seg = th[p : p + _BLOCK]
-                    rmin = np.minimum.accumulate(seg)
-                    np.minimum(rmin, self._tmin, out=rmin)
-                    rprev = np.empty_like(rmin)
-                    rprev[0] = self._tmin
-                    rprev[1:] = rmin[:-1]
-                    hit = np.flatnonzero(seg > rprev + rtol)
-                    if hit.size == 0:
-                        self._tmin = float(rmin[-1])
-                        self._c_reverse += seg.size
-                        p += seg.size
-                        continue
-                    s = p + int(hit[0])
-                    self._c_reverse += int(hit[0])
-                else:
-                    s = p
-                self._sync(float(t[s]), float(th[s]))
-                p = s
-            q = min(m, p + _BLOCK)
-            seg = th[p:q]
-            rm = np.maximum.accumulate(seg)
-            np.maximum(rm, self._tmax, out=rm)
-            rprev = np.empty_like(rm)
-            rprev[0] = self._tmax
-            rprev[1:] = rm[:-1]
-            rev = np.flatnonzero(seg < rprev - rtol)
-            stop = int(rev[0]) if rev.size else seg.size
-            if stop:
-                self._forward(t, az, th, rm[:stop], p, nan_after, out)
-            if rev.size:
-                r = p + stop
-                out.append(self._reverse(float(t[r]), float(th[r])))
-                p = r + 1
-            else:
-                p = q
-        return out
+        return self._run(t, az, theta)
 
-    def _forward(self, t, az, th, rm, p, nan_after, out) -> None:
-        """Forward samples p .. p+len(rm)-1 (no reversal among them), rm being
-        their running maximum of theta."""
-        L = rm.shape[0]
-        h = self._h
-        w0, w1 = self._w0, self._w1
-        k0 = self._k
-        # cycle index of every sample; only computed where a close is possible
-        if rm[-1] - self._mk >= self._close_ph:
-            K = np.floor((rm + h) * self._invP).astype(np.int64)
-            np.maximum(K, k0, out=K)
-            bounds = np.flatnonzero(np.diff(K, prepend=k0) > 0)
-        else:
-            K = None
-            bounds = np.empty(0, dtype=np.intp)
-        starts = [0] + bounds.tolist()
-        ends = bounds.tolist() + [L]
-        for j, (a, b) in enumerate(zip(starts, ends)):
-            if j > 0:
-                c = p + a
-                out.append(self._close(float(t[c]), float(th[c]), int(K[a])))
-            mk = self._mk
-            ph = rm[a:b] - mk
-            i0 = int(np.searchsorted(ph, w0, side="left"))
-            i1 = int(np.searchsorted(ph, w1, side="left"))
-            if nan_after is not None and i1 > 0 and nan_after[p + a : p + a + i1].any():
-                self._nanflag = True
-            if i1 > i0:
-                g0 = p + a + i0  # first window sample of this segment
-                if self._nwin == 0:
-                    # predecessor: the previous valid sample, if any since sync
-                    gi = g0 - 1
-                    if gi >= p:
-                        self._has_pre = True
-                        self._pre_t = float(t[gi])
-                        self._pre_ph = float(th[gi]) - mk
-                    elif self._has_prev:
-                        self._has_pre = True
-                        self._pre_t = self._prev_t
-                        self._pre_ph = self._prev_th - mk
-                cnt = i1 - i0
-                self._nwin += cnt
-                n = self._n
-                room = self.max_samples - n
-                take = cnt if cnt <= room else room
-                while n + take > self._cap:
-                    self._grow()
-                if take:
-                    g1 = g0 + take
-                    self._bt_np[n : n + take] = t[g0:g1]
-                    self._baz_np[n : n + take] = az[g0:g1]
-                    np.subtract(th[g0:g1], mk, out=self._bph_np[n : n + take])
-                    self._n = n + take
-                if take < cnt:
-                    self._overflow = True
-                    self._c_overflow += cnt - take
-            if i1 < b - a and not self._has_post:
-                g = p + a + i1
-                self._has_post = True
-                self._post_t = float(t[g])
-                self._post_ph = float(th[g]) - mk
-        last = p + L - 1
-        self._tmax = float(rm[-1])
-        self._prev_t = float(t[last])
-        self._prev_th = float(th[last])
-        self._has_prev = True
+    def _run(self, t, az, theta) -> list:
+        """Feed contiguous float64 arrays to the compiled segmenter; the cycles they closed."""
+        out = []
+        i = 0
+        while True:
+            i, what = _advance(self._st, self._buf, t, az, theta, i, self.clip_values)
+            if what == _DONE:
+                return out
+            if what == _FULL:
+                cap = min(2 * self._buf.shape[1], self.max_samples)
+                buf = np.empty((3, cap))
+                n = int(self._st[0]["n"])
+                buf[:, :n] = self._buf[:, :n]
+                self._buf = buf
+            else:
+                out.append(self._cycle())
+
+    def _cycle(self) -> LegCycle:
+        """The LegCycle of the cycle _advance just emitted."""
+        s = self._st[0]
+        flags = _FLAGS[int(s["e_bits"])]
+        quality = flags[0] if flags else "ok"
+        self._c_cycles[quality] += 1
+        window = self._buf[:, : int(s["e_n"])].copy()
+        window.flags.writeable = False
+        t, az, ph = window
+        return LegCycle(int(s["e_k"]), float(s["e_t_open"]), float(s["e_t_end"]), t, az, ph, int(s["e_nwin"]),
+                        quality, flags)

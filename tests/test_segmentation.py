@@ -501,7 +501,8 @@ def test_sparse_window():
 
 
 # ---------------------------------------------------------------------------
-# push vs push_many
+# chunking invariance: push (one sample) and push_many (any chunks, mixed with
+# push) run the same state machine and must give the same cycles and counters
 # ---------------------------------------------------------------------------
 
 

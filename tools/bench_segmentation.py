@@ -2,7 +2,7 @@
 
 Run from the repository root:
 
-    python tools/bench_segmentation.py [--seconds 3600] [--push-seconds 300] [--repeat 3]
+    python tools/bench_segmentation.py [--seconds 3600] [--push-seconds 300] [--repeat 3] [--baseline FILE]
 
 Prints, for a synthetic 1 kHz stream (default: one hour, 3.6 M samples):
   * CycleSegmenter.push (one sample at a time): samples/s and us per sample,
@@ -12,12 +12,18 @@ Prints, for a synthetic 1 kHz stream (default: one hour, 3.6 M samples):
   * a replay (iter_chunks -> push_many) in samples/s.
 Each figure is the best of --repeat runs; wall-clock and CPU (process) time
 are both shown, since a shared machine can slow the wall clock down.
+``--baseline FILE``: another version of ``slipest/segmentation.py`` (e.g.
+``git show b8ba846:slipest/segmentation.py > /tmp/seg_base.py``) whose push
+and push_many are timed too, in this process on the same stream, alternating
+runs with the current one, with the ratio current / baseline of CPU times and
+whether both give the same cycles and counters.
 The log is written to a temporary directory that is removed afterwards.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import math
 import os
 import sys
@@ -60,6 +66,21 @@ def best_of(repeat, fn):
     return res, min(walls), min(cpus)
 
 
+def load_baseline(path):
+    """The module in file ``path``, imported as part of the slipest package (its relative imports work)."""
+    spec = importlib.util.spec_from_file_location("slipest._segmentation_baseline", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # dataclasses look their module up there
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def cycle_fields(cycles):
+    """Comparable content of LegCycles (of any version of the class)."""
+    return [(c.k, c.t_start, c.t_end, c.n_samples, c.quality, c.flags, c.t.tobytes(), c.az.tobytes(),
+             c.theta_phase.tobytes()) for c in cycles]
+
+
 def report(name, n, wall, cpu, unit="samples"):
     print(f"{name:38s} {n / wall / 1e6:8.2f} M {unit}/s wall   {n / cpu / 1e6:8.2f} M {unit}/s cpu")
 
@@ -69,6 +90,7 @@ def main(argv=None):
     ap.add_argument("--seconds", type=float, default=3600.0, help="length of the stream/log at 1 kHz [s]")
     ap.add_argument("--push-seconds", type=float, default=300.0, help="part of it fed to push() one by one [s]")
     ap.add_argument("--repeat", type=int, default=3, help="runs per figure (best is shown)")
+    ap.add_argument("--baseline", metavar="FILE", help="another segmentation.py to time alongside (ratios)")
     args = ap.parse_args(argv)
 
     t, az, th, slip = make_stream(args.seconds)
@@ -76,38 +98,54 @@ def main(argv=None):
     print(f"stream: {n} samples ({args.seconds:.0f} s at 1 kHz), theta wrapped, "
           f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}")
 
-    # --- push, one sample at a time --------------------------------------
+    # --- push, one sample at a time; push_many, chunks --------------------
     m = min(n, int(args.push_seconds * 1000))
     tl, al, hl = t[:m].tolist(), az[:m].tolist(), th[:m].tolist()
 
-    def run_push():
-        seg = CycleSegmenter()
+    def run_push(cls):
+        seg = cls()
         push = seg.push
         out = []
         for a, b, c in zip(tl, al, hl):
             r = push(a, b, c)
             if r:
                 out += r
-        return out
+        return out, seg.counters
 
-    push_cycles, wall, cpu = best_of(args.repeat, run_push)
-    report(f"push() x {m}", m, wall, cpu)
-    print(f"{'':38s} {wall / m * 1e6:8.3f} us/sample wall {cpu / m * 1e6:8.3f} us/sample cpu")
-
-    # --- push_many, chunks -----------------------------------------------
-    def run_many(nn=n):
-        seg = CycleSegmenter()
+    def run_many(cls, nn=n):
+        seg = cls()
         out = []
         for i in range(0, nn, CHUNK):
             j = min(i + CHUNK, nn)
             out += seg.push_many(t[i:j], az[i:j], th[i:j])
-        return out
+        return out, seg.counters
 
-    cycles, wall, cpu = best_of(args.repeat, run_many)
-    report(f"push_many() chunks of {CHUNK}", n, wall, cpu)
-    same = run_many(m) == push_cycles
-    print(f"{'':38s} {len(cycles)} cycles, {sum(c.ok for c in cycles)} ok; "
-          f"push == push_many on the first {m} samples: {same}")
+    versions = {"": CycleSegmenter}
+    if args.baseline:
+        versions["baseline "] = load_baseline(args.baseline).CycleSegmenter
+    push_cpu, many_cpu, results = {}, {}, {}
+    for _ in range(args.repeat):  # alternate the versions, so that both see the same load
+        for label, cls in versions.items():
+            res, wall, cpu = best_of(1, lambda: run_push(cls))
+            push_cpu[label] = min(push_cpu.get(label, (math.inf,) * 2), (cpu, wall))
+            res_many, wall, cpu = best_of(1, lambda: run_many(cls))
+            many_cpu[label] = min(many_cpu.get(label, (math.inf,) * 2), (cpu, wall))
+            results[label] = (res, res_many, run_many(cls, m))
+    for label in versions:
+        (cpu, wall), (mcpu, mwall) = push_cpu[label], many_cpu[label]
+        report(f"{label}push() x {m}", m, wall, cpu)
+        print(f"{'':38s} {wall / m * 1e6:8.3f} us/sample wall {cpu / m * 1e6:8.3f} us/sample cpu")
+        report(f"{label}push_many() chunks of {CHUNK}", n, mwall, mcpu)
+        (push_cycles, push_counts), (cycles, _), (first, first_counts) = results[label]
+        same = cycle_fields(first) == cycle_fields(push_cycles) and first_counts == push_counts
+        print(f"{'':38s} {len(cycles)} cycles, {sum(c.ok for c in cycles)} ok; "
+              f"push == push_many on the first {m} samples: {same}")
+    if args.baseline:
+        b = "baseline "
+        same = all(cycle_fields(x[0]) == cycle_fields(y[0]) and x[1] == y[1]
+                   for x, y in zip(results[""], results[b]))
+        print(f"current / baseline CPU time: push {push_cpu[''][0] / push_cpu[b][0]:.2f}, "
+              f"push_many {many_cpu[''][0] / many_cpu[b][0]:.2f}; same cycles and counters: {same}")
 
     # --- log write / read ------------------------------------------------
     with tempfile.TemporaryDirectory() as tmp:
