@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from slipest.cli import estimate_output
-from slipest.cli.live import record_path
 from slipest.io.device_stream import WheelSamples, WheelStream
 from slipest.io.log_csv import read_log
-from tests.hil_support import firmware_sim, serial_device, slipest_cmd
+from slipest.live.recording import record_path
+from tests.hil_support import Stopping, firmware_sim, serial_device, slipest_cmd
 
 PERIOD = 2 * math.pi / (4 * 0.63)  # one leg cycle [s]
 
@@ -100,23 +100,19 @@ def test_record_paths():
 def test_live_serial_estimates_every_intact_cycle_and_never_a_damaged_one(tmp_path):
     device_report = tmp_path / "device.json"
     live_report = tmp_path / "live.json"
-    dev = firmware_sim("serial", "--cycles", "6", "--speed", "16", "--noise", "0.01", "--seed", "4", "--wheels", "2",
-                       "--send-reference", "--report", str(device_report), "--linger", "0.3",
-                       "--fault", f"drop@{window(1):.3f}:n=1,wheel=0",  # one lost frame
-                       "--fault", f"corrupt@{window(3):.3f}:n=2,wheel=1",  # corrupted bytes
-                       "--fault", f"stuck@{window(4, 0.2):.3f}:n=150,wheel=0",  # a stuck sensor
-                       "--fault", f"unknown-ids@{window(2):.3f}:n=6")  # frames of an unknown type
-    est = None
-    try:
+    with Stopping() as procs:
+        dev = procs.add(firmware_sim(
+            "serial", "--cycles", "6", "--speed", "16", "--noise", "0.01", "--seed", "4", "--wheels", "2",
+            "--send-reference", "--report", str(device_report), "--linger", "0.3",
+            "--fault", f"drop@{window(1):.3f}:n=1,wheel=0",  # one lost frame
+            "--fault", f"corrupt@{window(3):.3f}:n=2,wheel=1",  # corrupted bytes
+            "--fault", f"stuck@{window(4, 0.2):.3f}:n=150,wheel=0",  # a stuck sensor
+            "--fault", f"unknown-ids@{window(2):.3f}:n=6"))  # frames of an unknown type
         port = serial_device(dev)
-        est = slipest_cmd("serial", port, "--cycles", "6", "--idle-timeout", "3", "--duration", "60",
-                          "--report", str(live_report))
+        est = procs.add(slipest_cmd("serial", port, "--cycles", "6", "--idle-timeout", "3", "--duration", "60",
+                                    "--report", str(live_report)))
         assert dev.wait(60) == 0, dev.stderr
         assert est.wait(60) == 0, est.stderr
-    finally:
-        dev.stop()
-        if est is not None:
-            est.stop()
     got = rows(est)
     bad = {(0, 1): "nan", (1, 3): "nan", (0, 4): "nan"}
     for key, quality in bad.items():
@@ -140,22 +136,17 @@ def test_live_serial_estimates_every_intact_cycle_and_never_a_damaged_one(tmp_pa
 
 def test_live_serial_survives_the_device_disconnecting_and_coming_back(tmp_path):
     link = tmp_path / "imu"
-    dev = firmware_sim("serial", "--link", str(link), "--cycles", "7", "--speed", "8", "--noise", "0.01",
-                       "--seed", "5", "--fault", f"disconnect@{window(2):.3f}:down=1.0", "--settle", "0.05",
-                       "--linger", "0.3")
-    est = None
-    try:
+    with Stopping() as procs:
+        dev = procs.add(firmware_sim("serial", "--link", str(link), "--cycles", "7", "--speed", "8", "--noise", "0.01",
+                                     "--seed", "5", "--fault", f"disconnect@{window(2):.3f}:down=1.0", "--settle",
+                                     "0.05", "--linger", "0.3"))
         serial_device(dev)
-        est = slipest_cmd("serial", str(link), "--cycles", "7", "--idle-timeout", "3", "--duration", "60")
+        est = procs.add(slipest_cmd("serial", str(link), "--cycles", "7", "--idle-timeout", "3", "--duration", "60"))
         dev.wait_line("streaming", timeout=60)
         time.sleep(0.3)
         est.signal(signal.SIGUSR1)  # counters on demand, without stopping
         assert dev.wait(60) == 0
         assert est.wait(60) == 0, est.stderr
-    finally:
-        dev.stop()
-        if est is not None:
-            est.stop()
     got = rows(est)
     assert got[(0, 2)]["quality"] != "ok"  # the cycle of the outage
     assert all(got[(0, k)]["quality"] == "ok" for k in (4, 5))  # estimating again after the reconnection
@@ -167,19 +158,14 @@ def test_live_serial_survives_the_device_disconnecting_and_coming_back(tmp_path)
 def test_record_is_complete_after_sigterm_and_replays_to_the_same_estimates(tmp_path):
     rec = tmp_path / "run.csv"
     report = tmp_path / "live.json"
-    dev = firmware_sim("serial", "--cycles", "30", "--speed", "8", "--noise", "0.01", "--seed", "6",
-                       "--fault", f"drop@{window(1):.3f}:n=2")
-    est = None
-    try:
+    with Stopping() as procs:
+        dev = procs.add(firmware_sim("serial", "--cycles", "30", "--speed", "8", "--noise", "0.01", "--seed", "6",
+                                     "--fault", f"drop@{window(1):.3f}:n=2"))
         port = serial_device(dev)
-        est = slipest_cmd("serial", port, "--record", str(rec), "--report", str(report))
+        est = procs.add(slipest_cmd("serial", port, "--record", str(rec), "--report", str(report)))
         est.wait_line(r"^0,3,", timeout=60)  # a few cycles estimated live
         est.signal(signal.SIGTERM)
         assert est.wait(30) == 0
-    finally:
-        dev.stop()
-        if est is not None:
-            est.stop()
     live = json.loads(report.read_text())
     assert live["reason"] == "interrupted (SIGTERM)"
     log = read_log(rec)
