@@ -100,6 +100,21 @@ class Proc:
         return "\n".join(self.err_lines)
 
 
+class Stopping(list):
+    """The processes of a ``with`` block, each stopped by its own id at the end, whatever happens."""
+
+    def add(self, proc: Proc) -> Proc:
+        self.append(proc)
+        return proc
+
+    def __enter__(self) -> "Stopping":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for proc in reversed(self):
+            proc.stop()
+
+
 def firmware_sim(*args: str) -> Proc:
     return Proc([PY, "-m", "firmware_sim", *args])
 

@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 
 from slipest.cli.estimate_output import parse_rows
-from slipest.cli.live import LiveEstimation, feed_batches
 from slipest.io.bus_args import BusConfig, BusOpenError, ReconnectingBus, parse_bus_option, parse_bus_value
 from slipest.io.can_messages import (
     TIME_MOD_PERIOD,
@@ -22,6 +21,7 @@ from slipest.io.can_messages import (
 )
 from slipest.io.can_source import CanSource
 from slipest.io.socketcand_server import start_in_thread
+from slipest.live import LiveEstimation
 from slipest.model.scenario import Scenario
 from slipest.model.stream import simulate_stream
 from slipest.online import SlipEstimator
@@ -170,8 +170,7 @@ def test_can_player_replays_a_recorded_log_into_the_estimator(tmp_path):
     host, port, stop = start_in_thread()
     got = []
     source = CanSource(BusConfig("socketcand", "vcan0", {"host": host, "port": port})).start(wait_open=5)
-    live = LiveEstimation(seq_modulus=256, time_modulus=TIME_MOD_PERIOD, sim_speed=None,
-                          on_estimate=lambda w, e, i: got.append(e))
+    live = LiveEstimation(source, sim_speed=None, on_estimate=lambda w, e, i: got.append(e))
     try:
         stop.wait_for_clients(1)
         player = subprocess.Popen([PY, "-m", "can.player", "-i", "socketcand", "-c", "vcan0", "--bus-kwargs",
@@ -181,7 +180,7 @@ def test_can_player_replays_a_recorded_log_into_the_estimator(tmp_path):
         while time.monotonic() < deadline:
             batches = source.get(0.1)
             if batches:
-                feed_batches(live, batches, 1.0)
+                live.feed(batches)
             elif player.poll() is not None:
                 break
         assert player.wait(10) == 0, player.stderr.read()

@@ -9,12 +9,14 @@ import time
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from slipest.cli import estimate_output
-from slipest.cli.live import record_path
 from slipest.io.device_stream import WheelSamples, WheelStream
 from slipest.io.log_csv import read_log
-from tests.hil_support import firmware_sim, serial_device, slipest_cmd
+from slipest.live.recording import record_path
+from tests.hil_support import Stopping, firmware_sim, serial_device, slipest_cmd
 
 PERIOD = 2 * math.pi / (4 * 0.63)  # one leg cycle [s]
 
@@ -88,6 +90,114 @@ def test_a_stuck_sensor_is_never_handed_on_and_normal_data_is_not_delayed():
     assert stream.counters()["stuck_runs"] == 1
 
 
+#: What can happen to a device's stream (see frames_with_events).
+EVENTS = ("run", "lose", "dup", "swap", "restart", "stuck", "burst", "stall", "jump", "late", "early")
+#: How a link carries the frames: WheelStream options, and whether arrival times are given.
+LINKS = {"serial": ({}, True), "serial, no arrival times": ({}, False),
+         "can": ({"seq_modulus": 256, "time_modulus": 0.65536}, True),
+         "can, no counter": ({"seq_modulus": 0, "time_modulus": 0.65536}, True)}
+
+
+def frames_with_events(events, wrapped: bool, seed: int):
+    """A device's frames with events in it: (seq, t, az, theta, intake) lists in arrival order.
+
+    Starts with 200 plain frames at 1 kHz, then each (event, k): ``run`` k plain frames; ``lose`` k
+    frames never sent; ``dup`` the last frame again; ``swap`` two frames in swapped order; ``restart``
+    the counter back to k; ``stuck`` k frames with the same az; ``burst`` k frames arriving together
+    (one intake, up to 0.4 s late); ``stall`` the same, 0.3-0.7 s late (longer than half CAN's time
+    period); ``jump`` an angle step of 2 rad; ``late`` / ``early`` a frame 1.7 / 0.4 periods after the last.
+    ``wrapped``: an 8-bit counter and times modulo 0.65536 s (CAN), else 16 bits and absolute (serial)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    dev = {"seq": int(rng.integers(0, 1 << 16)), "t": 5.0 + float(rng.random()), "theta": float(rng.normal(0, 3)),
+           "omega": float(rng.uniform(-3, 3)), "az": None, "intake": None}
+
+    def make(dt=1e-3, dtheta=None):
+        dev["seq"] += 1
+        dev["t"] += dt
+        dev["theta"] += dev["omega"] * dt if dtheta is None else dtheta
+        az = dev["az"] if dev["az"] is not None else 9.81 + float(rng.normal(0, 0.1))
+        intake = dev["intake"] if dev["intake"] is not None else dev["t"] + 0.002 + float(rng.random()) * 1e-4
+        seq = dev["seq"] % (256 if wrapped else 1 << 16)
+        t = math.fmod(dev["t"], 0.65536) if wrapped else dev["t"]
+        theta = math.remainder(dev["theta"], 2 * math.pi)
+        return [seq, t, az, theta, intake]
+
+    out += [make() for _ in range(200)]
+    for event, k in events:
+        if event == "run":
+            out += [make() for _ in range(k)]
+        elif event == "lose":
+            for _ in range(k):
+                make()
+        elif event == "dup":
+            out.append(list(out[-1]))
+        elif event == "swap":
+            a, b = make(), make()
+            out += [b, a]
+        elif event == "restart":
+            dev["seq"] = k - 1
+            out.append(make())
+        elif event == "stuck":
+            dev["az"] = 9.81 + float(rng.normal(0, 0.1))
+            out += [make() for _ in range(k)]
+            dev["az"] = None
+        elif event in ("burst", "stall"):
+            dev["intake"] = dev["t"] + k * 1e-3 + (0.302 if event == "stall" else 0.002)
+            out += [make() for _ in range(k)]
+            dev["intake"] = None
+        elif event == "jump":
+            out.append(make(dtheta=2.0))
+        elif event == "late":
+            out.append(make(dt=1.7e-3))
+        elif event == "early":
+            out.append(make(dt=0.4e-3))
+    for i in range(1, len(out)):  # arrival times never go backwards
+        out[i][4] = max(out[i][4], out[i - 1][4])
+    return [list(col) for col in zip(*out)]
+
+
+def stream_state(s: WheelStream) -> tuple:
+    return (s._period, s._omega, s._last_seq, s._last_t, s._last_theta, s._last_raw_t, s._last_intake,
+            s._prev_az, s._stuck, tuple(s._held), tuple(sorted(s.counters().items())))
+
+
+def same_samples(a: WheelSamples, b: WheelSamples) -> bool:
+    return all(np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True)
+               for f in ("t", "az", "theta", "slip", "filled", "intake"))
+
+
+@settings(max_examples=100, deadline=None)
+@given(events=st.lists(st.tuples(st.sampled_from(EVENTS), st.integers(1, 400)), max_size=25),
+       splits=st.lists(st.integers(1, 400), min_size=1, max_size=30), link=st.sampled_from(sorted(LINKS)),
+       seed=st.integers(0, 2**32 - 1))
+def test_batches_give_what_frame_by_frame_gives_bit_for_bit(events, splits, link, seed):
+    """The vectorised run of plain frames (calls of 32 frames or more) against the rules applied
+    one frame at a time: the same samples to the bit, the same counters and state, whatever the
+    events and however the frames are split between calls."""
+    kwargs, timed = LINKS[link]
+    seq, t, az, theta, intake = frames_with_events(events, "time_modulus" in kwargs, seed)
+    if not timed:
+        intake = None
+    one, batched = WheelStream(**kwargs), WheelStream(**kwargs)
+
+    def part(i, j):
+        return seq[i:j], t[i:j], az[i:j], theta[i:j], None if intake is None else intake[i:j]
+
+    ref = [one.add(*part(i, i + 1)) for i in range(len(t))]
+    got, i = [], 0
+    for size in [200] + splits * (len(t) // sum(splits) + 1):  # 200 plain frames in one call first
+        got.append(batched.add(*part(i, i + size)))
+        i += size
+        if i >= len(t):
+            break
+    ref.append(one.flush())
+    got.append(batched.flush())
+    assert same_samples(WheelSamples.concatenate(ref), WheelSamples.concatenate(got))
+    assert stream_state(one) == stream_state(batched)
+    assert one._fast_frames == 0 and batched._fast_frames >= 200 - 32 - 1  # both ways were taken
+
+
 def test_record_paths():
     assert record_path("run.csv", 0) == "run.csv"
     assert record_path("run.csv", 2) == "run.wheel2.csv"
@@ -100,23 +210,19 @@ def test_record_paths():
 def test_live_serial_estimates_every_intact_cycle_and_never_a_damaged_one(tmp_path):
     device_report = tmp_path / "device.json"
     live_report = tmp_path / "live.json"
-    dev = firmware_sim("serial", "--cycles", "6", "--speed", "16", "--noise", "0.01", "--seed", "4", "--wheels", "2",
-                       "--send-reference", "--report", str(device_report), "--linger", "0.3",
-                       "--fault", f"drop@{window(1):.3f}:n=1,wheel=0",  # one lost frame
-                       "--fault", f"corrupt@{window(3):.3f}:n=2,wheel=1",  # corrupted bytes
-                       "--fault", f"stuck@{window(4, 0.2):.3f}:n=150,wheel=0",  # a stuck sensor
-                       "--fault", f"unknown-ids@{window(2):.3f}:n=6")  # frames of an unknown type
-    est = None
-    try:
+    with Stopping() as procs:
+        dev = procs.add(firmware_sim(
+            "serial", "--cycles", "6", "--speed", "16", "--noise", "0.01", "--seed", "4", "--wheels", "2",
+            "--send-reference", "--report", str(device_report), "--linger", "0.3",
+            "--fault", f"drop@{window(1):.3f}:n=1,wheel=0",  # one lost frame
+            "--fault", f"corrupt@{window(3):.3f}:n=2,wheel=1",  # corrupted bytes
+            "--fault", f"stuck@{window(4, 0.2):.3f}:n=150,wheel=0",  # a stuck sensor
+            "--fault", f"unknown-ids@{window(2):.3f}:n=6"))  # frames of an unknown type
         port = serial_device(dev)
-        est = slipest_cmd("serial", port, "--cycles", "6", "--idle-timeout", "3", "--duration", "60",
-                          "--report", str(live_report))
+        est = procs.add(slipest_cmd("serial", port, "--cycles", "6", "--idle-timeout", "3", "--duration", "60",
+                                    "--report", str(live_report)))
         assert dev.wait(60) == 0, dev.stderr
         assert est.wait(60) == 0, est.stderr
-    finally:
-        dev.stop()
-        if est is not None:
-            est.stop()
     got = rows(est)
     bad = {(0, 1): "nan", (1, 3): "nan", (0, 4): "nan"}
     for key, quality in bad.items():
@@ -140,22 +246,17 @@ def test_live_serial_estimates_every_intact_cycle_and_never_a_damaged_one(tmp_pa
 
 def test_live_serial_survives_the_device_disconnecting_and_coming_back(tmp_path):
     link = tmp_path / "imu"
-    dev = firmware_sim("serial", "--link", str(link), "--cycles", "7", "--speed", "8", "--noise", "0.01",
-                       "--seed", "5", "--fault", f"disconnect@{window(2):.3f}:down=1.0", "--settle", "0.05",
-                       "--linger", "0.3")
-    est = None
-    try:
+    with Stopping() as procs:
+        dev = procs.add(firmware_sim("serial", "--link", str(link), "--cycles", "7", "--speed", "8", "--noise", "0.01",
+                                     "--seed", "5", "--fault", f"disconnect@{window(2):.3f}:down=1.0", "--settle",
+                                     "0.05", "--linger", "0.3"))
         serial_device(dev)
-        est = slipest_cmd("serial", str(link), "--cycles", "7", "--idle-timeout", "3", "--duration", "60")
+        est = procs.add(slipest_cmd("serial", str(link), "--cycles", "7", "--idle-timeout", "3", "--duration", "60"))
         dev.wait_line("streaming", timeout=60)
         time.sleep(0.3)
         est.signal(signal.SIGUSR1)  # counters on demand, without stopping
         assert dev.wait(60) == 0
         assert est.wait(60) == 0, est.stderr
-    finally:
-        dev.stop()
-        if est is not None:
-            est.stop()
     got = rows(est)
     assert got[(0, 2)]["quality"] != "ok"  # the cycle of the outage
     assert all(got[(0, k)]["quality"] == "ok" for k in (4, 5))  # estimating again after the reconnection
@@ -167,19 +268,14 @@ def test_live_serial_survives_the_device_disconnecting_and_coming_back(tmp_path)
 def test_record_is_complete_after_sigterm_and_replays_to_the_same_estimates(tmp_path):
     rec = tmp_path / "run.csv"
     report = tmp_path / "live.json"
-    dev = firmware_sim("serial", "--cycles", "30", "--speed", "8", "--noise", "0.01", "--seed", "6",
-                       "--fault", f"drop@{window(1):.3f}:n=2")
-    est = None
-    try:
+    with Stopping() as procs:
+        dev = procs.add(firmware_sim("serial", "--cycles", "30", "--speed", "8", "--noise", "0.01", "--seed", "6",
+                                     "--fault", f"drop@{window(1):.3f}:n=2"))
         port = serial_device(dev)
-        est = slipest_cmd("serial", port, "--record", str(rec), "--report", str(report))
+        est = procs.add(slipest_cmd("serial", port, "--record", str(rec), "--report", str(report)))
         est.wait_line(r"^0,3,", timeout=60)  # a few cycles estimated live
         est.signal(signal.SIGTERM)
         assert est.wait(30) == 0
-    finally:
-        dev.stop()
-        if est is not None:
-            est.stop()
     live = json.loads(report.read_text())
     assert live["reason"] == "interrupted (SIGTERM)"
     log = read_log(rec)

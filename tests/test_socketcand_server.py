@@ -16,6 +16,8 @@ import can
 import pytest
 
 from slipest.io import socketcand_server as ss
+from slipest.cli.main import main
+from slipest.io.bus_args import BusConfig, BusOpenError, ReconnectingBus
 
 # A python-can peer in its own process.  argv: bus kwargs (JSON), mode, n.
 #   echo N: send back each of N received frames;  send N: after a line on
@@ -24,9 +26,9 @@ PEER = r"""
 import json, sys, can
 kwargs, mode, n = json.loads(sys.argv[1]), sys.argv[2], int(sys.argv[3])
 if kwargs.get("interface") == "socketcand":
-    from slipest.io.socketcand_server import make_socketcand_bus
+    from slipest.io.bus_args import BusConfig
     kwargs.pop("interface")
-    bus = make_socketcand_bus(**kwargs)
+    bus = BusConfig("socketcand", kwargs.pop("channel"), kwargs).open()
 else:
     bus = can.Bus(**kwargs)
 print("READY", flush=True)
@@ -84,6 +86,11 @@ def socketcand_kwargs(host: str, port: int) -> dict:
     return {"interface": "socketcand", "host": host, "port": port, "channel": "vcan0"}
 
 
+def socketcand_bus(host: str, port: int, channel: str = "vcan0") -> can.BusABC:
+    """A python-can socketcand bus on the server, opened the library's way (bus_args)."""
+    return BusConfig("socketcand", channel, {"host": host, "port": port}).open()
+
+
 def msg_tuple(msg: can.Message) -> tuple[int, bool, str]:
     return msg.arbitration_id, msg.is_extended_id, bytes(msg.data).hex()
 
@@ -107,7 +114,7 @@ def sample_frames():
 @pytest.fixture(scope="module")
 def cli_server():
     """The server as a separate process, started through its CLI."""
-    proc = subprocess.Popen([sys.executable, "-m", "slipest.io.socketcand_server", "--port", "0"],
+    proc = subprocess.Popen([sys.executable, "-m", "slipest.cli.main", "can-server", "--port", "0"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     line = proc.stdout.readline()
     assert line.startswith("socketcand server listening on 127.0.0.1:"), line
@@ -133,7 +140,7 @@ def test_two_processes_exchange_frames_both_directions(cli_server):
     host, port = cli_server
     frames = sample_frames()
     peer = start_peer(socketcand_kwargs(host, port), "echo", len(frames))
-    with ss.make_socketcand_bus(host, port) as bus:
+    with socketcand_bus(host, port) as bus:
         for msg in frames:
             bus.send(msg)
         echoed = [bus.recv(5.0) for _ in frames]
@@ -148,7 +155,7 @@ def test_many_frames_without_loss_in_order(cli_server):
     host, port = cli_server
     n = 5000
     # peer -> this process
-    with ss.make_socketcand_bus(host, port) as bus:
+    with socketcand_bus(host, port) as bus:
         sender = start_peer(socketcand_kwargs(host, port), "send", n)
         sender.stdin.write("go\n")
         sender.stdin.flush()
@@ -170,8 +177,8 @@ def test_many_frames_without_loss_in_order(cli_server):
 
 def test_channels_are_separate_buses(thread_server):
     host, port, stop = thread_server
-    with ss.make_socketcand_bus(host, port, "vcan0") as a, ss.make_socketcand_bus(host, port, "can1") as b, \
-            ss.make_socketcand_bus(host, port, "can1") as c:
+    with socketcand_bus(host, port, "vcan0") as a, socketcand_bus(host, port, "can1") as b, \
+            socketcand_bus(host, port, "can1") as c:
         b.send(can.Message(arbitration_id=0x42, is_extended_id=False, data=b"\x01"))
         got = c.recv(2.0)
         assert got is not None and msg_tuple(got) == (0x42, False, "01")
@@ -214,7 +221,7 @@ def test_can_logger_records_frames_to_a_file(thread_server, tmp_path, suffix):
         line = logger.stdout.readline()
         assert line.startswith("Connected to SocketCanDaemonBus"), line + logger.stderr.read()
         frames = sample_frames()
-        with ss.make_socketcand_bus(host, port) as bus:
+        with socketcand_bus(host, port) as bus:
             for msg in frames:
                 bus.send(msg)
             # everything delivered to the logger's socket and read by it
@@ -242,7 +249,7 @@ def test_can_player_replays_a_file_into_the_bus(thread_server, tmp_path, suffix)
         for k, msg in enumerate(frames):
             writer(can.Message(timestamp=1000.0 + 0.001 * k, arbitration_id=msg.arbitration_id,
                                is_extended_id=msg.is_extended_id, data=msg.data, channel="vcan0"))
-    with ss.make_socketcand_bus(host, port) as bus:
+    with socketcand_bus(host, port) as bus:
         # "--" ends --bus-kwargs (it takes any number of values) before the file name
         player = subprocess.run(
             [sys.executable, "-m", "can.player", "-i", "socketcand", "-c", "vcan0",
@@ -274,7 +281,7 @@ def raw_client(host: str, port: int, channel: bytes = b"vcan0", rcvbuf: int | No
 
 def test_garbage_tcp_splits_and_disconnect_mid_message(thread_server):
     host, port, stop = thread_server
-    with ss.make_socketcand_bus(host, port) as rx:
+    with socketcand_bus(host, port) as rx:
         sock = socket.create_connection((host, port), timeout=5)
         assert sock.recv(64) == b"< hi >"
         sock.sendall(b"< send 123 1 01 >")  # before open: refused
@@ -313,13 +320,13 @@ def test_garbage_tcp_splits_and_disconnect_mid_message(thread_server):
     s = stop.stats()
     assert s["bad_commands"] == 8
     assert s["garbage_bytes"] == len(b"garbagetext") + len(b"<x")  # whitespace is not counted
-    assert s["clients"] == 0 and s["clients_total"] == 2
+    assert s["clients"] == 0 and s["clients_total"] == 3  # rx, the connection BusConfig.open probed with, sock
     assert s["frames_in"] == 3
 
 
 def test_long_garbage_is_bounded_and_bus_keeps_working(thread_server):
     host, port, stop = thread_server
-    with ss.make_socketcand_bus(host, port) as rx:
+    with socketcand_bus(host, port) as rx:
         sock = raw_client(host, port)
         sock.sendall(b"<" + b"A" * 100_000)  # never closed
         sock.sendall(b"> < send 7 1 07 >")
@@ -340,9 +347,10 @@ def test_open_refused_channel_and_unknown_commands():
         sock.sendall(b"< open can0 >")
         assert sock.recv(64) == b"< ok >"
         sock.close()
-        with pytest.raises(can.CanError, match="error"):
-            ss.make_socketcand_bus(host, port, "vcan0")
-        with ss.make_socketcand_bus(host, port, "can0"):
+        with pytest.raises(BusOpenError, match="error") as refused:
+            socketcand_bus(host, port, "vcan0")
+        assert isinstance(refused.value.__cause__, can.CanError)
+        with socketcand_bus(host, port, "can0"):
             pass
     finally:
         stop()
@@ -353,7 +361,7 @@ def test_a_client_that_never_reads_does_not_stall_the_bus():
     try:
         stuck = raw_client(host, port, rcvbuf=4096)  # connected, in raw mode, never reads
         n = 20_000
-        with ss.make_socketcand_bus(host, port) as tx, ss.make_socketcand_bus(host, port) as rx:
+        with socketcand_bus(host, port) as tx, socketcand_bus(host, port) as rx:
             assert stop.wait_for_clients(3)
             received = []
 
@@ -388,7 +396,7 @@ def test_clients_joining_a_busy_bus_always_complete_the_handshake(thread_server)
     running.set()
 
     def blast():
-        with ss.make_socketcand_bus(host, port) as tx:
+        with socketcand_bus(host, port) as tx:
             i = 0
             while running.is_set():
                 tx.send(can.Message(arbitration_id=0x10, is_extended_id=False, data=bytes([i & 0xFF])))
@@ -400,7 +408,7 @@ def test_clients_joining_a_busy_bus_always_complete_the_handshake(thread_server)
     sender.start()
     try:
         for _ in range(15):  # "< ok >" must arrive alone after "< rawmode >"
-            with ss.make_socketcand_bus(host, port) as bus:
+            with socketcand_bus(host, port) as bus:
                 assert bus.recv(2.0) is not None  # and frames do flow
     finally:
         running.clear()
@@ -409,24 +417,30 @@ def test_clients_joining_a_busy_bus_always_complete_the_handshake(thread_server)
 
 def test_dead_server_is_detected():
     host, port, stop = ss.start_in_thread()
-    assert ss.server_alive(host, port)
-    bus = ss.make_socketcand_bus(host, port)
+    config = BusConfig("socketcand", "vcan0", {"host": host, "port": port})
+    events = []
+    watched = ReconnectingBus(config, on_event=events.append, min_backoff=5.0)
+    bus = config.open()  # the server answers
     try:
-        assert not ss.socketcand_peer_closed(bus)
+        assert watched.open()
+        assert watched.recv(0.05) is None and watched.errors == 0  # a quiet bus is not a dead one
         stop()
         deadline = time.monotonic() + 2
-        while not ss.socketcand_peer_closed(bus) and time.monotonic() < deadline:
-            time.sleep(0.01)
-        assert ss.socketcand_peer_closed(bus)
-        assert not ss.server_alive(host, port, timeout=0.5)
+        while watched.errors == 0 and time.monotonic() < deadline:
+            watched.recv(0.01)
+        assert watched.errors == 1 and not watched.connected
+        assert "connection closed by the server" in events[0] or "receive spins with no data" in events[0]
+        with pytest.raises(BusOpenError, match="no socketcand server"):
+            config.open()
         with pytest.raises(OSError):  # BrokenPipeError / ConnectionResetError
             for _ in range(5):
                 bus.send(can.Message(arbitration_id=1, is_extended_id=False, data=b""))
                 time.sleep(0.02)
     finally:
         bus.shutdown()
-    with can.Bus(interface="virtual", channel="x") as other, pytest.raises(TypeError):
-        ss.socketcand_peer_closed(other)
+        watched.shutdown()
+    with ReconnectingBus(BusConfig("virtual", "x")) as other:  # no TCP socket: never taken for a dead server
+        assert other.open() and other.recv(0.05) is None and other.errors == 0
 
 
 def test_only_loopback_addresses_are_accepted():
@@ -434,8 +448,8 @@ def test_only_loopback_addresses_are_accepted():
         ss.start_in_thread(host="0.0.0.0")
     with pytest.raises(ValueError, match="loopback"):
         ss.ServerThread(host="example.org")
-    with pytest.raises(SystemExit):
-        ss.main(["--host", "0.0.0.0", "--port", "0"])
+    with pytest.raises(SystemExit, match="loopback"):
+        main(["can-server", "--host", "0.0.0.0", "--port", "0"])
 
 
 # --------------------------------------------------------------------------- real SocketCAN

@@ -55,12 +55,11 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
-from slipest.cli.live import LiveEstimation, feed_batches  # noqa: E402
 from slipest.io.bus_args import BusConfig  # noqa: E402
 from slipest.io.can_messages import COUNTER_MODULUS, TIME_MOD_PERIOD, CanDecoder, ImuMessage  # noqa: E402
 from slipest.io.can_source import CanSource  # noqa: E402
 from slipest.io.serial_source import SerialSource  # noqa: E402
-from slipest.startup_gc import freeze_startup_objects  # noqa: E402
+from slipest.live import LiveEstimation, StopConditions, run_live  # noqa: E402
 
 PY = sys.executable
 SLIP = 0.3
@@ -131,11 +130,10 @@ def pct(values, q):
 class Receiver:
     """The live estimator of one run, instrumented: every sample's intake time, every estimate."""
 
-    def __init__(self, seq_modulus, time_modulus, sim_speed=1.0):
+    def __init__(self, source, sim_speed=1.0):
         self.intake = []  # (seq mod M, intake [s]) in arrival order
         self.estimates = []  # (estimate, ready monotonic [s])
-        self.live = LiveEstimation(seq_modulus=seq_modulus, time_modulus=time_modulus, sim_speed=sim_speed,
-                                   on_estimate=self._on_estimate)
+        self.live = LiveEstimation(source, sim_speed=sim_speed, on_estimate=self._on_estimate)
         orig = self.live.samples
 
         def samples(wheel, seq, t, az, theta, intake):
@@ -144,7 +142,6 @@ class Receiver:
 
         self.live.samples = samples
         self.live.warmup()
-        freeze_startup_objects()  # as run_live (slipest serial / can) does before streaming
 
     def _on_estimate(self, wheel, est, info):
         self.estimates.append((est, info["ready"]))
@@ -251,19 +248,20 @@ def run_one(name, link, duration, tmp, corrupt_rate=0.0, seed=1):
     gc.callbacks.append(hops.gc_callback)
     try:
         if link == "serial":
-            rx = Receiver(1 << 16, None)
+            source = SerialSource(os.path.join(tmp, f"{name}-pty"))
+            rx = Receiver(source)
             dev = Child(dev_args + ["--link", os.path.join(tmp, f"{name}-pty"), "--settle", "0.05"])
             children.append(dev)
             dev.expect("serial device")
-            source = SerialSource(os.path.join(tmp, f"{name}-pty")).start(wait_open=30)
-            t_scale = 1e-6
+            source.start(wait_open=30)
         else:
-            rx = Receiver(COUNTER_MODULUS, TIME_MOD_PERIOD)
             server = Child([PY, "-m", "slipest.cli.main", "can-server", "--port", "0"])
             children.append(server)
             port = int(server.expect("listening on").rsplit(":", 1)[1])
             config = BusConfig("socketcand", "vcan0", {"host": "127.0.0.1", "port": port})
-            source = CanSource(config, decoder=hops.wrap(CanDecoder())).start(wait_open=10)
+            source = CanSource(config, decoder=hops.wrap(CanDecoder()))
+            rx = Receiver(source)
+            source.start(wait_open=10)
             rx.publish = source.publish
             listener = Child([PY, "-c", LISTENER, str(port)])
             children.append(listener)
@@ -271,25 +269,21 @@ def run_one(name, link, duration, tmp, corrupt_rate=0.0, seed=1):
             dev = Child(dev_args + ["-i", "socketcand", "-c", "vcan0", "--bus-option", "host=127.0.0.1",
                                     "--bus-option", f"port={port}"])
             children.append(dev)
-            t_scale = 1.0
         print(f"  [{name}] streaming {duration:g} s at 1 kHz over {link} ...", flush=True)
-        last = time.monotonic()
-        try:
-            while True:
-                batches = source.get(0.05)
-                now = time.monotonic()
-                if batches:
-                    feed_batches(rx.live, batches, t_scale)
-                    last = now
-                if dev.p.poll() is not None and now - last > 1.0:
-                    break
-                if now - last > 60:
-                    raise RuntimeError("no data for 60 s")
+
+        def device_done(state):
+            quiet = state.now - (state.last_data or state.started)
+            if dev.p.poll() is not None and quiet > 1.0:
+                return "the device finished"
+            return "no data for 60 s" if quiet > 60 else None
+
+        try:  # the loop of slipest serial / can, which closes the source and the estimation
+            result = run_live(source, rx.live, StopConditions(until=device_done), handle_signals=False)
+            if result.reason != "the device finished":
+                raise RuntimeError(result.reason)
         except Exception:  # a crash of the live estimator is a finding, not a reason to stop the bench
             crashed = traceback.format_exc()
         source_counters = source.counters()
-        source.close()
-        rx.live.close()
         time.sleep(0.3)
         bus_estimates = {}
         if listener is not None:

@@ -18,11 +18,10 @@ Examples::
 from __future__ import annotations
 
 import argparse
-import sys
 
 
 def add_parser(sub) -> None:
-    from slipest.cli.live import add_live_arguments
+    from slipest.cli.live_args import add_live_arguments
     from slipest.io.bus_args import add_bus_arguments
 
     p = sub.add_parser(
@@ -33,41 +32,26 @@ def add_parser(sub) -> None:
     )
     add_bus_arguments(p)
     p.add_argument("--no-publish", action="store_true", help="do not send SlipEstimate messages")
-    p.add_argument("--wait-open", type=float, default=5.0, metavar="S",
-                   help="keep trying to open the bus for S seconds at start (default 5)")
-    add_live_arguments(p)
+    add_live_arguments(p, "the bus")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from slipest.cli.live import feed_batches, live_from_args, run_live
-    from slipest.cli.serial_cmd import make_printer
+    from slipest.cli.live_args import live_from_args, make_printer, run_command
     from slipest.io.bus_args import bus_config_from_args
-    from slipest.io.can_messages import COUNTER_MODULUS, TIME_MOD_PERIOD
     from slipest.io.can_source import CanSource
 
     try:
         config = bus_config_from_args(args)
     except ValueError as exc:
         raise SystemExit(f"slipest can: {exc}") from None
-    holder = {}
+    source = CanSource(config)
+    printer = make_printer(args)
 
     def on_estimate(wheel, est, info):
         if not args.no_publish:
-            holder["source"].publish(wheel, est)
+            source.publish(wheel, est)
         printer(wheel, est, info)
 
-    printer = make_printer(args)
-    live = live_from_args(args, seq_modulus=COUNTER_MODULUS, time_modulus=TIME_MOD_PERIOD,
-                          source=f"can:{config.describe()}", on_estimate=on_estimate)
-    source = holder["source"] = CanSource(config)
-    try:
-        source.start(wait_open=args.wait_open)
-    except OSError as exc:
-        raise SystemExit(f"slipest can: {exc}") from None
-    print(f"slipest: listening on CAN bus {config.describe()}", file=sys.stderr, flush=True)
-    try:
-        return run_live(source, live, args, handle_batches=lambda bs: feed_batches(live, bs, 1.0),
-                        notices=source.notices, source_counters=source.counters)
-    except FileExistsError as exc:  # the recording of a wheel that appeared later
-        raise SystemExit(f"slipest can: {exc}; use --overwrite") from None
+    live = live_from_args(args, source, on_estimate)
+    return run_command("slipest can", args, source, live, f"listening on CAN bus {config.describe()}")

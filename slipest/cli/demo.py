@@ -42,6 +42,7 @@ DEMO_SCENARIO = {
         {"cycles": 10, "slip": [0.45, 0.20], "kS": 700.0, "phiS": 0.48, "phiD": 0.36},
     ],
 }
+_GAVE_UP = "no data from the device for 30 s"
 _STRETCHES = ("firm soil, steady slip", "same soil, slip rising", "stiffer, grippier soil", "soft soil, slip falling")
 
 
@@ -213,8 +214,7 @@ def _summary(display: _Display, live, source_counters: dict, device_report: dict
 def run(args: argparse.Namespace) -> int:
     import json
 
-    from slipest.cli.live import LiveEstimation, feed_batches
-    from slipest.startup_gc import freeze_startup_objects
+    from slipest.live import LiveEstimation, StopConditions, run_live
     from slipest.model.scenario import Scenario
 
     if args.speed < 0 or not math.isfinite(args.speed):
@@ -233,14 +233,19 @@ def run(args: argparse.Namespace) -> int:
     def _term(signum, frame):
         raise KeyboardInterrupt
 
-    old_term = signal.signal(signal.SIGTERM, _term)
+    old_term = signal.signal(signal.SIGTERM, _term)  # while starting up; run_live handles it while streaming
     children: list[_Child] = []
-    source = None
-    device = None
+    source = live = result = None
     display = _Display(scenario, out)
     tmp = tempfile.TemporaryDirectory(prefix="slipest-demo-")
     device_report_path = os.path.join(tmp.name, "device.json")
     code = 0
+
+    def estimation(on_estimate):
+        est = LiveEstimation(source, n_legs=scenario.n_legs, sim_speed=speed or None, on_estimate=on_estimate)
+        est.warmup()
+        return est
+
     try:
         scen_path = os.path.join(tmp.name, "demo.toml")
         with open(scen_path, "w") as fh:
@@ -249,11 +254,6 @@ def run(args: argparse.Namespace) -> int:
         faster = f", shown {speed:g}x faster" if speed not in (0, 1) else ""
         print(f"slipest demo: {n_cycles} leg cycles ({n_cycles * period:.0f} s of driving{faster}) over {link_name}",
               file=out, flush=True)
-        live = LiveEstimation(n_legs=scenario.n_legs, use_reference=False, sim_speed=speed or None,
-                              seq_modulus=1 << 16 if args.bus == "serial" else 256,
-                              time_modulus=None if args.bus == "serial" else 0.65536,
-                              on_estimate=display, source="demo")
-        live.warmup()
         dev_args = [sys.executable, "-m", "firmware_sim", args.bus, "--scenario", scen_path, "--speed", f"{speed:g}",
                     "--duration", f"{duration:.6f}", "--send-reference", "--report", device_report_path, "--quiet",
                     "--linger", "0.3"]
@@ -263,12 +263,13 @@ def run(args: argparse.Namespace) -> int:
             from slipest.io.serial_source import SerialSource
 
             link = os.path.join(tmp.name, "imu")
+            source = SerialSource(link)
+            live = estimation(display)
             device = _Child(dev_args + ["--link", link, "--settle", "0.05"])
             children.append(device)
             device.expect("serial device", 60)
             print(f"slipest demo: virtual device (pid {device.p.pid}) on {link}", file=out, flush=True)
-            source = SerialSource(link).start(wait_open=10)
-            feed = lambda bs: feed_batches(live, bs, 1e-6)  # noqa: E731
+            source.start(wait_open=10)
         else:
             from slipest.io.bus_args import BusConfig
             from slipest.io.can_source import CanSource
@@ -276,31 +277,29 @@ def run(args: argparse.Namespace) -> int:
             server = _Child([sys.executable, "-m", "slipest.cli.main", "can-server", "--port", "0"])
             children.append(server)
             port = int(server.expect("listening on", 30).rsplit(":", 1)[1])
-            config = BusConfig("socketcand", "vcan0", {"host": "127.0.0.1", "port": port})
-            source = CanSource(config).start(wait_open=10)
-            live.on_estimate = lambda w, e, i: (source.publish(w, e), display(w, e, i))
+            source = CanSource(BusConfig("socketcand", "vcan0", {"host": "127.0.0.1", "port": port}))
+            live = estimation(lambda w, e, i: (source.publish(w, e), display(w, e, i)))
+            source.start(wait_open=10)
             device = _Child(dev_args + ["-i", "socketcand", "-c", "vcan0", "--bus-option", "host=127.0.0.1",
                                         "--bus-option", f"port={port}"])
             children.append(device)
             print(f"slipest demo: CAN server (pid {server.p.pid}) on 127.0.0.1:{port}, virtual device (pid "
                   f"{device.p.pid}); estimates are published back on the bus", file=out, flush=True)
-            feed = lambda bs: feed_batches(live, bs, 1.0)  # noqa: E731
         display.header()
-        freeze_startup_objects()  # no 30-60 ms full garbage collection over the start-up objects mid-stream
-        last_data = time.monotonic()
-        while True:
-            batches = source.get(0.05)
-            now = time.monotonic()
-            if batches:
-                feed(batches)
-                last_data = now
-            if device.p.poll() is not None and now - last_data > 0.5:
-                break
-            if now - last_data > 30:
-                print("slipest demo: no data from the device for 30 s; giving up", file=sys.stderr)
-                code = 1
-                break
-        if device.p.wait(10) != 0:
+
+        def device_done(state):
+            quiet = state.now - (state.last_data or state.started)
+            if device.p.poll() is not None and quiet > 0.5:
+                return "the device finished"
+            return _GAVE_UP if quiet > 30 else None
+
+        result = run_live(source, live, StopConditions(until=device_done))
+        if result.interrupted:
+            print("\nslipest demo: interrupted", file=out)
+        elif result.reason == _GAVE_UP:
+            print(f"slipest demo: {_GAVE_UP}; giving up", file=sys.stderr)
+            code = 1
+        elif device.p.wait(10) != 0:
             print("slipest demo: the device failed: " + " | ".join(device.err[-5:]), file=sys.stderr)
             code = 1
     except KeyboardInterrupt:
@@ -319,8 +318,9 @@ def run(args: argparse.Namespace) -> int:
         if os.path.exists(device_report_path):
             with open(device_report_path) as fh:
                 report = json.load(fh)
-        if source is not None:
-            live.close()
+        if source is not None and source.started:
+            if result is None:
+                live.close()  # interrupted before streaming: run_live did not close it
             res = _summary(display, live, source.counters(), report, out)
             if code == 0 and res["estimated"] == 0:
                 print("slipest demo: no cycle was estimated", file=sys.stderr)

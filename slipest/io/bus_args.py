@@ -38,8 +38,6 @@ from typing import Any
 
 import can
 
-from slipest.io.socketcand_server import tcp_peer_closed
-
 __all__ = [
     "BusOpenError",
     "BusConfig",
@@ -197,11 +195,19 @@ def _socket_of(bus) -> socket.socket | None:
 
 
 def _peer_closed(bus) -> bool:
-    """True when the bus's TCP socket (socketcand) has reached end of file."""
+    """True when the bus's TCP socket (socketcand) has reached end of file or is unusable (closed
+    here, or an error); peeks without consuming data.  False for a bus without a TCP socket."""
     sock = _socket_of(bus)
     if sock is None or sock.type != socket.SOCK_STREAM:
         return False
-    return tcp_peer_closed(sock)
+    if sock.fileno() < 0:
+        return True
+    try:
+        return sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+    except (BlockingIOError, InterruptedError):
+        return False
+    except OSError:
+        return True
 
 
 def _shutdown_quietly(bus) -> None:

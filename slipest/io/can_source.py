@@ -1,36 +1,38 @@
 """Live CAN source: receive the DBC's messages on any python-can bus, publish estimates back.
 
-:class:`CanSource` owns the bus and nothing else: a reader thread receives
-with a :class:`~slipest.io.bus_args.ReconnectingBus` (errors are reported
-and counted, a dead socketcand server is reconnected when it is back),
+:class:`CanSource` is the :class:`~slipest.io.source.Source` of a CAN
+bus: a reader thread receives with a
+:class:`~slipest.io.bus_args.ReconnectingBus` (errors are reported and
+counted, a dead socketcand server is reconnected when it is back),
 decodes with :class:`~slipest.io.can_messages.CanDecoder` (unknown IDs and
 bad frames counted and skipped) and queues the samples with the time they
 arrived (host monotonic clock).  :meth:`CanSource.publish` sends one
 SlipEstimate message per leg cycle (ID 0x110 + wheel): an estimated cycle
 with Quality 0, a flagged one (not estimated) with Quality 15 (INVALID).
 
-Samples carry the device time modulo 0.65536 s and an 8-bit counter; the
-consumer unwraps both (:class:`~slipest.io.device_stream.WheelStream` with
-``seq_modulus=256, time_modulus=TIME_MOD_PERIOD``).
+Wire facts (:class:`~slipest.io.source.Source`): samples carry an 8-bit
+counter and the device time in seconds modulo 0.65536 s (``TimeMod``); the
+consumer unwraps both.
 """
 
 from __future__ import annotations
 
 import math
-import queue
 import threading
 import time
 
 from slipest.io.bus_args import BusConfig, ReconnectingBus
 from slipest.io.can_messages import (
+    COUNTER_MODULUS,
     QUALITY_INVALID,
     QUALITY_OK,
+    TIME_MOD_PERIOD,
     CanDecoder,
     ImuMessage,
     SlipReferenceMessage,
     encode_slip_estimate,
 )
-from slipest.io.source_batch import SourceBatch, drain
+from slipest.io.source import Source, SourceBatch
 
 __all__ = ["CanSource", "estimate_message"]
 
@@ -43,83 +45,28 @@ def estimate_message(wheel: int, estimate):
     return encode_slip_estimate(wheel, int(getattr(estimate, "cycle", 0)), *values, quality=code)
 
 
-class CanSource:
-    """Samples from a CAN bus, read in a background thread (see the module docstring)."""
+class CanSource(Source):
+    """Samples from a CAN bus, read in a background thread (see the module docstring).
+
+    :meth:`start` raises ``OSError`` when the bus cannot be opened within
+    ``wait_open`` seconds.  ``max_batch``: most messages in one batch.
+    """
+
+    seq_modulus = COUNTER_MODULUS
+    time_unit = 1.0
+    time_modulus = TIME_MOD_PERIOD
 
     def __init__(self, config: BusConfig, *, decoder: CanDecoder | None = None, max_batch: int = 512):
+        super().__init__()
         self.config = config
         self.decoder = decoder or CanDecoder()
         self.max_batch = max_batch
-        self.events: queue.Queue = queue.Queue()
-        self.bus = ReconnectingBus(config, on_event=self.events.put)
-        self._q: queue.Queue = queue.Queue()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self.bus = ReconnectingBus(config, on_event=self._notice)
         self.c = {"published": 0, "publish_failed": 0, "references_invalid": 0}
         self._lock = threading.Lock()
 
-    def start(self, wait_open: float = 0.0) -> "CanSource":
-        if not self.bus.open(wait=wait_open):
-            raise OSError(self.bus.last_error or f"cannot open CAN bus {self.config.describe()}")
-        self._thread = threading.Thread(target=self._run, name="can-reader", daemon=True)
-        self._thread.start()
-        return self
-
-    def close(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-        self.bus.shutdown()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
-
-    # -- reader thread ----------------------------------------------------------------
-    def _run(self) -> None:
-        bus = self.bus
-        decode = self.decoder.decode
-        while not self._stop.is_set():
-            msg = bus.recv(0.05)
-            if msg is None:
-                continue
-            intake = time.monotonic()
-            imu = []
-            refs = []
-            n = 0
-            while msg is not None:
-                with self._lock:
-                    rec = decode(msg)
-                if isinstance(rec, ImuMessage):
-                    imu.append((rec.wheel, rec.counter, rec.time_mod, rec.az, rec.theta))
-                elif isinstance(rec, SlipReferenceMessage):
-                    if rec.slip == rec.slip:
-                        refs.append((rec.wheel, rec.counter, rec.time_mod, rec.slip))
-                    else:
-                        self.c["references_invalid"] += 1
-                n += 1
-                if n >= self.max_batch:
-                    break
-                msg = bus.recv(0)
-            if imu or refs:
-                self._q.put(SourceBatch(intake, imu, refs))
-
-    # -- consumer side ------------------------------------------------------------------
-    def get(self, timeout: float = 0.1) -> list[SourceBatch]:
-        """Batches that arrived (waits up to ``timeout`` s for the first one)."""
-        return drain(self._q, timeout)
-
-    def publish(self, wheel: int, estimate) -> bool:
-        """Send the SlipEstimate message of one cycle; False when the bus is down (counted)."""
-        ok = self.bus.send(estimate_message(wheel, estimate))
-        self.c["published" if ok else "publish_failed"] += 1
-        return ok
-
-    def notices(self) -> list[str]:
-        """Events waiting now (never blocks)."""
-        return drain(self.events, 0)
+    def describe(self) -> str:
+        return f"can:{self.config.describe()}"
 
     def counters(self) -> dict:
         with self._lock:
@@ -128,3 +75,44 @@ class CanSource:
         c.update(self.c)
         c.update(self.bus.counters())
         return c
+
+    def publish(self, wheel: int, estimate) -> bool:
+        """Send the SlipEstimate message of one cycle; False when the bus is down (counted)."""
+        ok = self.bus.send(estimate_message(wheel, estimate))
+        self.c["published" if ok else "publish_failed"] += 1
+        return ok
+
+    # -- the link ------------------------------------------------------------------------
+    def _open(self, wait: float) -> None:
+        if not self.bus.open(wait=wait):
+            raise OSError(self.bus.last_error or f"cannot open CAN bus {self.config.describe()}")
+
+    def _read(self) -> None:
+        bus = self.bus
+        msg = bus.recv(0.05)
+        if msg is None:
+            return
+        intake = time.monotonic()
+        decode = self.decoder.decode
+        imu = []
+        refs = []
+        n = 0
+        while msg is not None:
+            with self._lock:
+                rec = decode(msg)
+            if isinstance(rec, ImuMessage):
+                imu.append((rec.wheel, rec.counter, rec.time_mod, rec.az, rec.theta))
+            elif isinstance(rec, SlipReferenceMessage):
+                if rec.slip == rec.slip:
+                    refs.append((rec.wheel, rec.counter, rec.time_mod, rec.slip))
+                else:
+                    self.c["references_invalid"] += 1
+            n += 1
+            if n >= self.max_batch:
+                break
+            msg = bus.recv(0)
+        if imu or refs:
+            self._put(SourceBatch(intake, imu, refs))
+
+    def _release(self) -> None:
+        self.bus.shutdown()

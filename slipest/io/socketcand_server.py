@@ -51,29 +51,28 @@ seconds (default 0.02) and then delivered, none lost.
 Pitfalls of python-can's socketcand client (4.x), measured here:
 
 * it logs ``Got incomplete message => waiting for more data`` (WARNING) on an
-  ordinary TCP split; harmless.  :func:`make_socketcand_bus` filters that one
-  message out by default.
+  ordinary TCP split; harmless.
 * when the server goes away, its ``recv`` returns None at once, again and
   again (spinning a CPU until the timeout), and ``send`` raises
-  ``BrokenPipeError`` (or ``ConnectionResetError``).  Use
-  :func:`socketcand_peer_closed` to detect it on an open bus and
-  :func:`server_alive` before (re)connecting.
+  ``BrokenPipeError`` (or ``ConnectionResetError``).
 
-API: :class:`SocketcandServer` (asyncio), :func:`run_server` (blocking),
-:func:`start_in_thread` (for tests and tools), :func:`main` (CLI:
-``python -m slipest.io.socketcand_server --port 29536``).
+The client side is :mod:`slipest.io.bus_args` (``BusConfig("socketcand",
+channel, {"host": ..., "port": ...}).open()``, and ``ReconnectingBus``),
+which deals with both.
+
+API: :class:`SocketcandServer` (asyncio), :func:`run_server` (blocking; the
+``slipest can-server`` command), :class:`ServerThread` /
+:func:`start_in_thread` (in a background thread of this process).
 """
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import ipaddress
 import logging
 import re
 import signal
 import socket
-import sys
 import threading
 import time
 from typing import Callable, Iterable
@@ -86,10 +85,6 @@ __all__ = [
     "ServerThread",
     "run_server",
     "start_in_thread",
-    "make_socketcand_bus",
-    "server_alive",
-    "socketcand_peer_closed",
-    "main",
 ]
 
 log = logging.getLogger(__name__)
@@ -512,127 +507,3 @@ def start_in_thread(port: int = 0, host: str = "127.0.0.1", **server_kwargs) -> 
     """
     thread = ServerThread(host, port, **server_kwargs).start()
     return thread.host, thread.port, thread
-
-
-# ---------------------------------------------------------------------------
-# Client-side helpers
-# ---------------------------------------------------------------------------
-
-
-class _DropIncompleteWarning(logging.Filter):
-    def filter(self, record: logging.LogRecord) -> bool:
-        return not str(record.msg).startswith("Got incomplete message")
-
-
-_SOCKETCAND_LOGGER = "can.interfaces.socketcand.socketcand"
-_filter_installed = False
-
-
-def make_socketcand_bus(host: str, port: int, channel: str = DEFAULT_CHANNEL, *,
-                        quiet_splits: bool = True, **kwargs):
-    """``can.Bus(interface="socketcand", ...)`` connected to a server.
-
-    :param quiet_splits: drop python-can's "Got incomplete message" warning,
-        which it logs for every ordinary TCP split (installs a filter on its
-        logger once; other warnings stay).
-    :param kwargs: more ``can.Bus`` arguments (``can_filters``, ``tcp_tune``...).
-    :raises can.CanError: handshake failed.  :raises TimeoutError: no server
-        (python-can retries for 10 s; check :func:`server_alive` first).
-    """
-    import can
-
-    global _filter_installed
-    if quiet_splits and not _filter_installed:
-        logging.getLogger(_SOCKETCAND_LOGGER).addFilter(_DropIncompleteWarning())
-        _filter_installed = True
-    return can.Bus(interface="socketcand", host=host, port=port, channel=channel, **kwargs)
-
-
-def server_alive(host: str, port: int, timeout: float = 1.0) -> bool:
-    """True when a socketcand server answers ``< hi >`` at host:port within
-    ``timeout`` seconds (opens and closes one connection)."""
-    try:
-        with socket.create_connection((host, port), timeout=timeout) as sock:
-            deadline = time.monotonic() + timeout
-            got = b""
-            while b">" not in got and time.monotonic() < deadline:
-                chunk = sock.recv(64)
-                if not chunk:
-                    break
-                got += chunk
-            return got.startswith(b"< hi >")
-    except OSError:
-        return False
-
-
-def socketcand_peer_closed(bus) -> bool:
-    """True when the server side of a python-can socketcand bus has closed.
-
-    python-can's client then spins in ``recv`` returning None and raises
-    ``BrokenPipeError`` on ``send``; this peeks at its TCP socket (end of
-    file, or an error) without consuming data.  Relies on the client's
-    private socket attribute (python-can 4.x).
-    :raises TypeError: not a socketcand bus.
-    """
-    sock = getattr(bus, "_SocketCanDaemonBus__socket", None)
-    if not isinstance(sock, socket.socket):
-        raise TypeError(f"not a python-can socketcand bus: {type(bus).__name__}")
-    return tcp_peer_closed(sock)
-
-
-def tcp_peer_closed(sock: socket.socket) -> bool:
-    """True when the peer of a connected TCP socket has closed it (end of file) or the socket is
-    unusable (closed here, or an error); peeks without consuming data."""
-    if sock.fileno() < 0:
-        return True
-    try:
-        return sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
-    except (BlockingIOError, InterruptedError):
-        return False
-    except OSError:
-        return True
-
-
-# ---------------------------------------------------------------------------
-# CLI
-# ---------------------------------------------------------------------------
-
-
-def main(argv: list[str] | None = None) -> int:
-    """CLI: ``python -m slipest.io.socketcand_server [--port P] [--channel NAME]``."""
-    parser = argparse.ArgumentParser(
-        prog="python -m slipest.io.socketcand_server",
-        description="Shared virtual CAN bus for python-can's socketcand interface (loopback only).")
-    parser.add_argument("--host", default="127.0.0.1", help="loopback address to listen on (default 127.0.0.1)")
-    parser.add_argument("--port", type=int, default=DEFAULT_PORT,
-                        help=f"TCP port (default {DEFAULT_PORT}; 0 picks a free one)")
-    parser.add_argument("--channel", action="append", dest="channels", metavar="NAME",
-                        help="channel clients may open (repeatable; default: any)")
-    parser.add_argument("--join-grace", type=float, default=_DEFAULT_JOIN_GRACE, metavar="SECONDS",
-                        help="hold frames for a client that just entered raw mode (default %(default)s s)")
-    parser.add_argument("-v", "--verbose", action="store_true", help="log connections")
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
-                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    try:
-        _loopback_host(args.host)
-    except ValueError as exc:
-        parser.error(str(exc))
-
-    def ready(host: str, port: int) -> None:
-        print(f"socketcand server listening on {host}:{port}", flush=True)
-        print(f"  python-can: can.Bus(interface='socketcand', host='{host}', port={port}, "
-              f"channel='{(args.channels or [DEFAULT_CHANNEL])[0]}')", flush=True)
-
-    try:
-        stats = run_server(args.host, args.port, on_ready=ready, channels=args.channels,
-                           join_grace=args.join_grace)
-    except OSError as exc:
-        print(f"error: cannot listen on {args.host}:{args.port}: {exc.strerror or exc}", file=sys.stderr)
-        return 1
-    print("stopped: " + ", ".join(f"{k}={v}" for k, v in stats.items()), file=sys.stderr, flush=True)
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

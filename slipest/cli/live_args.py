@@ -1,0 +1,134 @@
+"""What ``slipest serial`` and ``slipest can`` share: options, printing, the run.
+
+The runtime is the library's (:mod:`slipest.live`); this module turns the
+command line into it and prints: the live options (:func:`add_live_arguments`),
+the :class:`~slipest.live.LiveEstimation` they describe
+(:func:`live_from_args`), the estimate rows (:func:`make_printer`), the
+counters for people (:func:`format_counters`), and the run of a command
+around a source (:func:`run_command`: counters at exit and on SIGUSR1, the
+``--report`` JSON, exit code 0 on a normal stop).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from slipest.cli.estimator_args import add_estimator_arguments, model_from_args, soil_from_args
+from slipest.live import LiveEstimation, StopConditions, run_live
+
+
+def add_live_arguments(p: argparse.ArgumentParser, link: str) -> None:
+    """Options shared by the live commands; ``link``: what ``--wait-open`` opens (for its help)."""
+    p.add_argument("--wait-open", type=float, default=5.0, metavar="S",
+                   help=f"keep trying to open {link} for S seconds at start (default 5)")
+    e = p.add_argument_group("estimation")
+    e.add_argument("--legs", type=int, default=4, help="legs of each wheel-leg (default 4)")
+    add_estimator_arguments(e)
+    e.add_argument("--use-reference", action="store_true",
+                   help="learn the soil from the reference slip frames the device sends (testbeds)")
+    e.add_argument("--wheel", type=int, action="append", default=None, metavar="W",
+                   help="estimate only this wheel (repeatable; default: every wheel seen)")
+    e.add_argument("--stuck-samples", type=int, default=50, metavar="N",
+                   help="az bit-identical over N consecutive samples is a stuck sensor: not estimated from "
+                   "(default 50; 0: off; noise-free simulated data over CAN needs 0)")
+    o = p.add_argument_group("output")
+    o.add_argument("--record", metavar="FILE",
+                   help="record the input to a log CSV (wheel 0: FILE; wheel k: STEM.wheelK.EXT, or FILE with "
+                   "{wheel} replaced); flushed continuously, complete after Ctrl-C or SIGTERM")
+    o.add_argument("--overwrite", action="store_true", help="overwrite existing --record files")
+    o.add_argument("--report", metavar="FILE", help="write the counters and latency figures as JSON at exit")
+    o.add_argument("-q", "--quiet", action="store_true", help="do not print estimates (counters still at exit)")
+    s = p.add_argument_group("stopping")
+    s.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
+    s.add_argument("--cycles", type=int, default=None, metavar="N",
+                   help="stop once every wheel seen has N leg cycles estimated or flagged")
+    s.add_argument("--idle-timeout", type=float, default=None, metavar="S",
+                   help="stop when no frame arrived for S seconds (after the first one)")
+    t = p.add_argument_group("timing")
+    t.add_argument("--sim-speed", type=float, default=None, metavar="S",
+                   help="the device is firmware-sim on this host with --speed S: its timestamps are this host's "
+                   "monotonic clock x S, so the latency from each sample's instant to its intake is measured, and "
+                   "wrapped CAN timestamps are unwrapped across outages knowing that device time runs S times "
+                   "faster than this host's")
+
+
+def live_from_args(args, source, on_estimate) -> LiveEstimation:
+    """The warmed-up :class:`~slipest.live.LiveEstimation` the live options describe for ``source``
+    (SystemExit on a bad combination or an existing recording)."""
+    try:
+        live = LiveEstimation(source, n_legs=args.legs, method=args.method, soil=soil_from_args(args),
+                              use_reference=args.use_reference, model=model_from_args(args), wheels=args.wheel,
+                              stuck_samples=args.stuck_samples, sim_speed=args.sim_speed, record=args.record,
+                              overwrite=args.overwrite, on_estimate=on_estimate)
+        live.warmup()  # also checks the estimator options (e.g. eq515 without a soil)
+    except FileExistsError as exc:
+        raise SystemExit(f"slipest: {exc}; use --overwrite") from None
+    except (ValueError, TypeError) as exc:
+        raise SystemExit(f"slipest: {exc}") from None
+    return live
+
+
+def make_printer(args, out=None):
+    """The ``on_estimate`` callback that prints rows (header first; nothing with ``--quiet``)."""
+    from slipest.cli import estimate_output
+
+    out = out or sys.stdout
+    state = {"header": False}
+
+    def on_estimate(wheel, est, info):
+        if args.quiet:
+            return
+        if not state["header"]:
+            print(estimate_output.header(("wheel",)), file=out)
+            state["header"] = True
+        print(estimate_output.row(est, (wheel,)), file=out, flush=True)
+
+    return on_estimate
+
+
+def format_counters(source: dict, estimation: dict, latency: dict) -> str:
+    """Counters of what was dropped and why, and the latencies, for people."""
+    lines = ["counters:"]
+    lines.append("  source: " + ", ".join(f"{k}={v}" for k, v in source.items() if not isinstance(v, dict)))
+    lines.append("  estimation: " + ", ".join(f"{k}={v}" for k, v in estimation.items() if not isinstance(v, dict)))
+    for key, wc in estimation.items():
+        if isinstance(wc, dict):
+            flat = {k: v for k, v in wc.items() if not isinstance(v, dict)}
+            lines.append(f"  {key}: " + ", ".join(f"{k}={v}" for k, v in flat.items())
+                         + (f", qualities={wc['qualities']}" if wc.get("qualities") else ""))
+    for name, figures in latency.items():
+        if figures.get("n"):
+            lines.append(f"  latency {name.replace('_', ' ')}: median {figures['median_ms']:.3f} ms, "
+                         f"p99 {figures['p99_ms']:.3f} ms (n={figures['n']})")
+    return "\n".join(lines)
+
+
+def run_command(prog: str, args, source, live: LiveEstimation, started: str) -> int:
+    """Start ``source`` (``--wait-open``), announce ``started`` on stderr, run until a stop
+    condition, print the reason and the counters, write ``--report``.  Returns 0 on a normal
+    stop (duration, cycles, idle, Ctrl-C, SIGTERM); SystemExit when the source cannot be opened
+    or a later wheel's recording exists."""
+    err = sys.stderr
+    try:
+        source.start(wait_open=args.wait_open)
+    except OSError as exc:
+        raise SystemExit(f"{prog}: {exc}") from None
+    print(f"slipest: {started}", file=err, flush=True)
+
+    def status():
+        print(format_counters(source.counters(), live.counters(), live.latency()), file=err, flush=True)
+
+    stop = StopConditions(duration=args.duration, cycles=args.cycles, idle_timeout=args.idle_timeout)
+    try:
+        result = run_live(source, live, stop, on_notice=lambda text: print(f"slipest: {text}", file=err, flush=True),
+                          on_status=status)
+    except FileExistsError as exc:  # the recording of a wheel that appeared later
+        raise SystemExit(f"{prog}: {exc}; use --overwrite") from None
+    print(f"slipest: {result.reason}", file=err)
+    print(format_counters(result.source, result.estimation, result.latency), file=err, flush=True)
+    if args.report:
+        with open(args.report, "w") as fh:
+            json.dump(result.report(), fh, indent=1, default=str)
+    return 0

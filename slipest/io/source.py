@@ -1,0 +1,162 @@
+"""The seam between a live link (serial port, CAN bus, ...) and the estimation runtime.
+
+A :class:`Source` reads a device's frames in a background thread and hands
+them on in :class:`SourceBatch` es through a queue: the interface every link
+implements, as python-can's ``BusABC`` is for buses, and a reader thread
+feeding a decoder, as in pyserial's ``serial.threaded``.  A source also
+declares the facts of its wire format that a consumer needs to turn frames
+into a continuous stream (:class:`~slipest.io.device_stream.WheelStream`):
+
+* ``seq_modulus``: each wheel's frames carry a sequence counter modulo this
+  (serial 2**16, CAN 256; 0: no counter);
+* ``time_unit`` [s]: one unit of a batch's time field (serial: 1e-6, the
+  frames carry microseconds; CAN: 1.0, seconds);
+* ``time_modulus`` [s]: device timestamps wrap with this period (CAN's
+  ``TimeMod``: 0.65536 s); None: they are absolute.
+
+A subclass implements :meth:`Source.describe`, :meth:`Source.counters`,
+``_open(wait)`` (open the link, retrying for up to ``wait`` seconds; an
+``OSError`` when it cannot) and ``_read()`` (one step of the reader thread:
+wait at most about 0.2 s for data, hand frames on with ``_put`` and events
+with ``_notice``; False to end the thread), and may override
+``_interrupt()`` (wake a blocked read) and ``_release()`` (close the link).
+"""
+
+from __future__ import annotations
+
+import abc
+import queue
+import threading
+from dataclasses import dataclass
+
+__all__ = ["Source", "SourceBatch", "drain"]
+
+
+@dataclass
+class SourceBatch:
+    """Frames that arrived together.  ``intake`` [s]: host monotonic time of
+    arrival; ``imu``: ``(wheel, seq, t, az, theta)`` tuples; ``refs``:
+    ``(wheel, seq, t, slip)`` tuples; both in arrival order, ``t`` in the
+    source's ``time_unit``, ``az`` [m/s^2], ``theta`` [rad, wrapped by the
+    device], ``slip`` [-] (a reference)."""
+
+    intake: float
+    imu: list
+    refs: list
+
+
+def drain(q: queue.Queue, timeout: float = 0.1) -> list:
+    """Every item waiting in ``q`` (waits up to ``timeout`` s for the first one; 0: never blocks)."""
+    out = []
+    try:
+        out.append(q.get(timeout=timeout) if timeout else q.get_nowait())
+    except queue.Empty:
+        return out
+    while True:
+        try:
+            out.append(q.get_nowait())
+        except queue.Empty:
+            return out
+
+
+class Source(abc.ABC):
+    """Frames of a live link, read in a background thread (see the module docstring).
+
+    Use: ``source.start(wait_open)``, then :meth:`get` batches and
+    :meth:`notices` until :meth:`close` (also a context manager, closing on
+    exit).  ``ended`` is set once the reader thread has stopped.
+    """
+
+    #: Each wheel's sequence counter runs modulo this (0: frames carry no counter).
+    seq_modulus: int = 0
+    #: [s] per unit of a :class:`SourceBatch`'s time field.
+    time_unit: float = 1.0
+    #: [s] device timestamps wrap with this period; None: absolute.
+    time_modulus: float | None = None
+
+    def __init__(self) -> None:
+        self._batches: queue.Queue = queue.Queue()
+        self._notices: queue.Queue = queue.Queue()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.ended = threading.Event()
+        self.last_error: str | None = None
+
+    # -- what a link implements -------------------------------------------------------
+    @abc.abstractmethod
+    def describe(self) -> str:
+        """The link, for people and recordings (e.g. ``serial:/dev/ttyUSB0``)."""
+
+    @abc.abstractmethod
+    def counters(self) -> dict:
+        """What was received, rejected and why, and the link's failures (counts)."""
+
+    @abc.abstractmethod
+    def _open(self, wait: float) -> None:
+        """Open the link, retrying for up to ``wait`` s; OSError when it cannot be opened."""
+
+    @abc.abstractmethod
+    def _read(self) -> bool | None:
+        """One step of the reader thread (see the module docstring); False ends the thread."""
+
+    def _interrupt(self) -> None:
+        """Wake a read blocked in the reader thread (called by :meth:`close`)."""
+
+    def _release(self) -> None:
+        """Close the link (called by :meth:`close` once the reader thread has stopped)."""
+
+    # -- for the link's reader thread ---------------------------------------------------
+    def _put(self, batch: SourceBatch) -> None:
+        self._batches.put(batch)
+
+    def _notice(self, text: str) -> None:
+        self._notices.put(text)
+
+    def _run(self) -> None:
+        try:
+            while not self._stop.is_set():
+                if self._read() is False:
+                    return
+        except Exception as exc:  # a bug in the reader: reported to the consumer, then raised (traceback)
+            self.last_error = f"{type(exc).__name__}: {exc}"
+            self._notice(f"{self.describe()}: reader stopped: {self.last_error}")
+            raise
+        finally:
+            self.ended.set()
+
+    # -- for the consumer ----------------------------------------------------------------
+    @property
+    def started(self) -> bool:
+        """:meth:`start` has opened the link (it may have been closed since)."""
+        return self._thread is not None
+
+    def start(self, wait_open: float = 0.0) -> "Source":
+        """Open the link (retrying for up to ``wait_open`` s) and start reading; OSError when it cannot be opened."""
+        if self._thread is not None:
+            raise RuntimeError(f"{self.describe()}: already started")
+        self._open(wait_open)
+        self._thread = threading.Thread(target=self._run, name=f"reader {self.describe()}", daemon=True)
+        self._thread.start()
+        return self
+
+    def get(self, timeout: float = 0.1) -> list[SourceBatch]:
+        """The batches that arrived, in order (waits up to ``timeout`` s for the first one)."""
+        return drain(self._batches, timeout)
+
+    def notices(self) -> list[str]:
+        """Events for people (disconnections, reconnections), waiting now; never blocks."""
+        return drain(self._notices, 0)
+
+    def close(self) -> None:
+        """Stop reading and close the link (idempotent)."""
+        self._stop.set()
+        self._interrupt()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        self._release()
+
+    def __enter__(self) -> "Source":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

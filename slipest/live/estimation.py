@@ -1,0 +1,288 @@
+"""Live estimation of every wheel: frames in, one estimate per leg cycle out.
+
+:class:`LiveEstimation` takes the batches a :class:`~slipest.io.source.Source`
+delivers (any wheel, in arrival order), turns each wheel's frames into
+samples with that source's wire facts (a
+:class:`~slipest.io.device_stream.WheelStream` per wheel: lost frames become
+NaN samples so their cycles are flagged, stuck sensors are caught, wrapped
+counters and times are unwrapped), runs one estimator per wheel, records the
+samples when asked (:mod:`slipest.live.recording`), and reports every
+estimate to a callback (print it, publish it on the bus...).  It keeps
+counters and two latencies: from a cycle's closing sample arriving to its
+estimate being ready, and (for firmware-sim on this host, ``sim_speed``)
+from each sample's instant on the device to its arrival.
+
+A cycle is counted ``estimates`` when its quality is ``"ok"`` and its slip
+finite, else ``cycles_flagged``; an estimator error on one push (a
+``ValueError`` or ``FloatingPointError``) is counted
+(``estimator_errors``, ``last_error``) and the stream goes on.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from slipest.io.device_stream import WheelSamples, WheelStream
+from slipest.live.recording import Recorder
+
+__all__ = ["LiveEstimation", "WheelState"]
+
+#: A push of up to this many samples goes sample by sample (cheaper than the array path for a few).
+_PUSH_ONE_BY_ONE = 8
+
+
+def _percentiles(values: np.ndarray) -> dict:
+    v = values[np.isfinite(values)]
+    if not v.size:
+        return {"n": 0}
+    return {"n": int(v.size), "median_ms": float(np.median(v) * 1e3), "p99_ms": float(np.percentile(v, 99) * 1e3),
+            "max_ms": float(v.max() * 1e3)}
+
+
+@dataclass
+class WheelState:
+    """One wheel's stream, estimator and tallies."""
+
+    stream: WheelStream
+    estimator: object
+    estimates: int = 0
+    cycles_seen: int = 0
+    qualities: dict = field(default_factory=dict)
+
+
+class LiveEstimation:
+    """Frames of any wheel in, estimates out (see the module docstring).
+
+    ``source``: the :class:`~slipest.io.source.Source` the frames come from
+    (its ``seq_modulus``, ``time_modulus``, ``time_unit`` and
+    ``describe()`` are used; it need not be started yet).  The estimator
+    options (``n_legs``, ``method``, ``soil``, ``use_reference``, ``model``)
+    are those of :class:`~slipest.online.SlipEstimator`, or
+    ``estimator_factory(wheel)`` makes each wheel's estimator.  ``wheels``:
+    estimate only these (None: every wheel seen).  ``stuck_samples``: see
+    :class:`~slipest.io.device_stream.WheelStream`.  ``sim_speed``: the
+    device is firmware-sim on this host at this speed (its timestamps are
+    this host's monotonic clock times the speed): device-to-intake latency
+    is measured and wrapped times are unwrapped knowing the speed-up.
+    ``record``: record the samples (see :class:`~slipest.live.recording.Recorder`;
+    ``FileExistsError`` unless ``overwrite``).
+
+    ``on_estimate(wheel, estimate, info)`` is called for every closed cycle,
+    in order; ``info`` holds ``intake`` (arrival of the cycle's closing
+    sample, host monotonic [s]), ``latency`` (from that arrival to the
+    estimate being ready [s]; NaN when unknown) and ``ready`` [s].
+    """
+
+    def __init__(self, source, *, n_legs: int = 4, method: str | None = None, soil: dict | None = None,
+                 use_reference: bool = False, model=None, wheels: list[int] | None = None, stuck_samples: int = 50,
+                 sim_speed: float | None = None, record: str | None = None, overwrite: bool = False,
+                 on_estimate: Callable | None = None, estimator_factory: Callable | None = None):
+        self.seq_modulus = int(source.seq_modulus)
+        self.time_modulus = source.time_modulus
+        self.time_unit = float(source.time_unit)
+        self.n_legs = n_legs
+        self.method = method
+        self.soil = soil or None
+        self.use_reference = use_reference
+        self.model = model  # the inverse model (FeatureSurrogate) of the default method; None: the shipped one
+        self.only_wheels = set(wheels) if wheels else None
+        self.stuck_samples = stuck_samples
+        self.sim_speed = sim_speed
+        self.on_estimate = on_estimate or (lambda wheel, est, info: None)
+        self._factory = estimator_factory or self._default_factory
+        self.recorder = (Recorder(record, n_legs=n_legs, source=source.describe(), overwrite=overwrite)
+                         if record else None)
+        self.wheels: dict[int, WheelState] = {}
+        self.c = {"frames_ignored_wheel": 0, "estimates": 0, "cycles_flagged": 0, "estimator_errors": 0}
+        self._intake_latency: list[np.ndarray] = []
+        self._estimate_latency: list[float] = []
+        self._spare = None
+        self.last_error: str | None = None
+
+    def warmup(self) -> float:
+        """Get the estimator's one-time costs (loading the model, compiled
+        code) out of the way before data comes: a throwaway estimator gets
+        three synthetic leg cycles, and a fresh one is kept for the first
+        wheel.  Raises the estimator's ``ValueError``/``TypeError`` on bad
+        options.  Returns the seconds it took."""
+        t0 = time.monotonic()
+        est = self._factory(-1)
+        n_legs = self.n_legs
+        omega = 0.63
+        period = 2 * math.pi / (n_legs * omega)
+        t = np.arange(0.0, 3 * period, 1e-3)
+        theta = -math.pi / n_legs + omega * t
+        phase = np.mod(theta + math.pi / n_legs, 2 * math.pi / n_legs) - math.pi / n_legs
+        rng = np.random.default_rng(0)
+        az = 9.81 + np.where(phase > 0.2, 3.0 * np.sin(2 * math.pi * 12 * t), 0.0) + rng.normal(0, 0.1, t.size)
+        try:
+            est.push_many(t, az, theta)
+        except ValueError:  # the synthetic cycles are only for warming up; what they give does not matter
+            pass
+        self._spare = self._factory(0)
+        return time.monotonic() - t0
+
+    # -- set-up -----------------------------------------------------------------
+    def _default_factory(self, wheel: int):
+        from slipest.online import SlipEstimator
+
+        kwargs = {"n_legs": self.n_legs, "use_reference": self.use_reference, "soil": self.soil, "model": self.model}
+        if self.method is not None:
+            kwargs["method"] = self.method
+        return SlipEstimator(**kwargs)
+
+    def _wheel(self, wheel: int) -> WheelState | None:
+        st = self.wheels.get(wheel)
+        if st is not None:
+            return st
+        if self.only_wheels is not None and wheel not in self.only_wheels:
+            return None
+        stream = WheelStream(wheel, seq_modulus=self.seq_modulus, time_modulus=self.time_modulus,
+                             time_scale=self.sim_speed or 1.0, stuck_samples=self.stuck_samples)
+        estimator, self._spare = (self._spare, None) if self._spare is not None else (self._factory(wheel), None)
+        if self.recorder is not None:
+            self.recorder.open_wheel(wheel)
+        st = self.wheels[wheel] = WheelState(stream, estimator)
+        return st
+
+    # -- input ------------------------------------------------------------------
+    def feed(self, batches) -> None:
+        """Source batches (:class:`~slipest.io.source.SourceBatch`) in arrival order.  Each wheel's
+        IMU frames are merged into one push per run between reference frames (fewer, larger pushes
+        when the consumer is behind)."""
+        per_wheel: dict[int, tuple[list, list, list, list, list]] = {}
+        unit = self.time_unit
+
+        def push():
+            for w, (seq, t, az, th, intake) in per_wheel.items():
+                self.samples(w, seq, t, az, th, intake)
+            per_wheel.clear()
+
+        for b in batches:
+            if b.refs:
+                push()
+                for wheel, _seq, _t, slip in b.refs:
+                    self.reference(wheel, slip)
+            for wheel, seq, t, az, th in b.imu:
+                cols = per_wheel.get(wheel)
+                if cols is None:
+                    cols = per_wheel[wheel] = ([], [], [], [], [])
+                cols[0].append(seq)
+                cols[1].append(t * unit)
+                cols[2].append(az)
+                cols[3].append(th)
+                cols[4].append(b.intake)
+        push()
+
+    def reference(self, wheel: int, slip: float) -> None:
+        """A reference slip [-] for the wheel's samples that follow."""
+        st = self._wheel(wheel)
+        if st is None:
+            self.c["frames_ignored_wheel"] += 1
+            return
+        st.stream.set_reference(slip)
+
+    def samples(self, wheel: int, seq, t, az, theta, intake) -> None:
+        """Frames of one wheel, in arrival order (sequences of equal length): counters, ``t`` [s]
+        device time (wrapped when the source's time is), ``az`` [m/s^2], ``theta`` [rad],
+        ``intake`` [s] arrival times."""
+        st = self._wheel(wheel)
+        if st is None:
+            self.c["frames_ignored_wheel"] += len(t)
+            return
+        if self.sim_speed:
+            self._measure_intake(np.asarray(t, np.float64), np.asarray(intake, np.float64))
+        self._push(wheel, st, st.stream.add(seq, t, az, theta, intake))
+
+    def _measure_intake(self, t, intake) -> None:
+        s = self.sim_speed
+        lag = np.asarray(s * intake - t, np.float64).reshape(-1)
+        if self.time_modulus:
+            lag = np.mod(lag, self.time_modulus)
+        self._intake_latency.append(lag / s)
+
+    def _push(self, wheel: int, st: WheelState, s: WheelSamples) -> None:
+        if not len(s):
+            return
+        if self.recorder is not None:
+            self.recorder.add(wheel, s)
+        try:
+            est = st.estimator
+            if len(s) <= _PUSH_ONE_BY_ONE:
+                estimates = []
+                use_ref = self.use_reference
+                for i in range(len(s)):
+                    estimates += est.push(float(s.t[i]), float(s.az[i]), float(s.theta[i]),
+                                          float(s.slip[i]) if use_ref else None)
+            else:
+                estimates = est.push_many(s.t, s.az, s.theta, s.slip if self.use_reference else None)
+        except (ValueError, FloatingPointError) as exc:  # never let one bad cycle stop the stream
+            self.c["estimator_errors"] += 1
+            self.last_error = f"wheel {wheel}: {type(exc).__name__}: {exc}"
+            return
+        now = time.monotonic()
+        for est in estimates:
+            st.cycles_seen += 1
+            q = str(getattr(est, "quality", "ok"))
+            st.qualities[q] = st.qualities.get(q, 0) + 1
+            slip = getattr(est, "slip", math.nan)
+            if q != "ok" or slip != slip:
+                self.c["cycles_flagged"] += 1
+            else:
+                st.estimates += 1
+                self.c["estimates"] += 1
+            t_end = float(getattr(est, "t_end", math.nan))
+            k = int(np.searchsorted(s.t, t_end)) if t_end == t_end else -1
+            intake = float(s.intake[k]) if 0 <= k < len(s) and s.t[k] == t_end else math.nan
+            latency = now - intake if intake == intake else math.nan
+            if latency == latency:
+                self._estimate_latency.append(latency)
+            self.on_estimate(wheel, est, {"intake": intake, "latency": latency, "ready": now})
+
+    def flush(self, force: bool = False) -> None:
+        """Write the recording's buffered samples (every 0.1 s at most unless ``force``)."""
+        if self.recorder is not None:
+            self.recorder.flush(force)
+
+    def close(self) -> None:
+        """Hand on the samples the streams still hold, then write, flush and close the recording."""
+        try:
+            for wheel, st in self.wheels.items():
+                self._push(wheel, st, st.stream.flush())
+        finally:
+            if self.recorder is not None:
+                self.recorder.close()
+
+    # -- reporting ---------------------------------------------------------------
+    def min_cycles(self) -> int:
+        """Fewest leg cycles closed by any wheel seen (0 before the first)."""
+        return min((st.cycles_seen for st in self.wheels.values()), default=0)
+
+    def counters(self) -> dict:
+        """Estimation counters, and per wheel (``wheelK``) the stream's, the estimator's and the recording's."""
+        c = dict(self.c)
+        for wheel, st in sorted(self.wheels.items()):
+            wc = st.stream.counters()
+            wc["estimates"] = st.estimates
+            wc["cycles"] = st.cycles_seen
+            wc["qualities"] = dict(st.qualities)
+            seg = getattr(st.estimator, "counters", None)
+            if seg is not None:
+                wc["estimator"] = seg() if callable(seg) else dict(seg)
+            if self.recorder is not None:
+                wc["rows_recorded"] = self.recorder.rows(wheel)
+            c[f"wheel{wheel}"] = wc
+        return c
+
+    def latency(self) -> dict:
+        """``intake_to_estimate`` and (with ``sim_speed``) ``device_to_intake``: n, median, p99, max [ms]."""
+        out = {"intake_to_estimate": _percentiles(np.array(self._estimate_latency, np.float64))}
+        if self.sim_speed:
+            v = np.concatenate(self._intake_latency) if self._intake_latency else np.empty(0)
+            out["device_to_intake"] = _percentiles(v)
+        return out
