@@ -28,20 +28,13 @@ from typing import Callable
 import numpy as np
 
 from slipest.io.device_stream import WheelSamples, WheelStream
+from slipest.latency import latency_summary
 from slipest.live.recording import Recorder
 
 __all__ = ["LiveEstimation", "WheelState"]
 
 #: A push of up to this many samples goes sample by sample (cheaper than the array path for a few).
 _PUSH_ONE_BY_ONE = 8
-
-
-def _percentiles(values: np.ndarray) -> dict:
-    v = values[np.isfinite(values)]
-    if not v.size:
-        return {"n": 0}
-    return {"n": int(v.size), "median_ms": float(np.median(v) * 1e3), "p99_ms": float(np.percentile(v, 99) * 1e3),
-            "max_ms": float(v.max() * 1e3)}
 
 
 @dataclass
@@ -281,8 +274,7 @@ class LiveEstimation:
 
     def latency(self) -> dict:
         """``intake_to_estimate`` and (with ``sim_speed``) ``device_to_intake``: n, median, p99, max [ms]."""
-        out = {"intake_to_estimate": _percentiles(np.array(self._estimate_latency, np.float64))}
+        out = {"intake_to_estimate": latency_summary([np.array(self._estimate_latency, np.float64)])}
         if self.sim_speed:
-            v = np.concatenate(self._intake_latency) if self._intake_latency else np.empty(0)
-            out["device_to_intake"] = _percentiles(v)
+            out["device_to_intake"] = latency_summary(self._intake_latency)
         return out
