@@ -229,7 +229,7 @@ def test_end_to_end_names_a_strong_effect():
 def test_butterworth_sections_match_scipy_and_start_steady():
     from scipy import signal
 
-    from slipest.diagnosis.predict import butter_sections, lowpass_batch
+    from slipest.model.effects.imu_lowpass import butter_sections, lowpass_batch
 
     grid = Grid(4)
     fs = 0.63 / grid.dpsi
@@ -245,7 +245,7 @@ def test_butterworth_sections_match_scipy_and_start_steady():
 
 
 def test_expected_clip_is_the_mean_of_noisy_clipped_samples():
-    from slipest.diagnosis.fit import expected_clip
+    from slipest.model.effects.imu_saturation import expected_clip
 
     rng = np.random.default_rng(3)
     noise = rng.normal(0.0, 0.2, 400_000)
@@ -256,13 +256,13 @@ def test_expected_clip_is_the_mean_of_noisy_clipped_samples():
 
 
 def test_impact_train_is_the_sum_over_past_touchdowns():
-    from slipest.diagnosis.predict import impact_batch, psi_time
     from slipest.model.effects import impact_response
+    from slipest.model.effects.touchdown_impact import impact_batch
 
     grid = Grid(4)
     omega, A, tau, f = 0.63, -9.0, 0.8, 13.0
     train = impact_batch(grid, omega, [A], [tau], [f])[0]
-    t = psi_time(grid, omega)
+    t = grid.time(omega)
     period = 2 * math.pi / (4 * omega)
     explicit = sum(impact_response(t - j * period, A, tau, f) for j in range(-40, 2))
     np.testing.assert_allclose(train, explicit, atol=1e-9)
