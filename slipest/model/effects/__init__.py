@@ -166,8 +166,8 @@ def catalog_text() -> str:
         lines.append(f"``{e.name}`` ({e.kind})")
         lines.append(f"    {e.equation}")
         for p in e.params:
-            lines.append(f"    ``{p.name}`` [{p.unit}]: typical {p.typical[0]:g}-{p.typical[1]:g}, "
-                         f"moderate {p.moderate[0]:g}-{p.moderate[1]:g}, default {p.default:g}")
+            lines.append(f"    ``{p.name}`` [{p.unit}]: typical [{p.typical[0]:.4g}, {p.typical[1]:.4g}], "
+                         f"moderate [{p.moderate[0]:.4g}, {p.moderate[1]:.4g}], default {p.default:g}")
     return "\n".join(lines)
 
 
