@@ -218,6 +218,19 @@ def test_effects_at_their_fit_starts_predict_the_nominal_model():
         np.testing.assert_allclose(pred[0][ev.group_of], ref[0][nominal.group_of], atol=1e-9, err_msg=name)
 
 
+def test_the_fitted_bias_is_the_data_bias_whatever_bias0():
+    """Evaluator.mse's bias is the log's whole accelerometer bias, not that plus the bias assumed before clipping."""
+    soil = {"kS": 1100.0, "phiS": 0.6, "phiD": 0.42, "kappa": 0.33}
+    s = _log([0.15, 0.15, 0.4, 0.4], soil=soil, effects=({"name": "angle_offset", "offset": 0.1},), noise=0.005)
+    cs = _cycles(s)
+    cs.y += 0.25  # a 0.25 m/s^2 accelerometer bias
+    truth = {"kS": soil["kS"], "phiS": soil["phiS"], "dphi": soil["phiS"] - soil["phiD"], "kappa": soil["kappa"]}
+    for bias0 in (0.0, 0.25):
+        ev = Evaluator(cs, np.arange(len(cs)), "angle_offset", Geometry(), bias0=bias0)
+        _, bias = ev.mse(ev.z_of({**truth, "offset": 0.1})[None])
+        assert bias[0] == pytest.approx(0.25, abs=0.01), bias0
+
+
 # --- CLI and end to end ------------------------------------------------------------------------
 
 

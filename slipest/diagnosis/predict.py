@@ -371,7 +371,12 @@ class Evaluator:
         return out, ok
 
     def mse(self, Z: np.ndarray, dt: float = DT_FINE) -> tuple[np.ndarray, np.ndarray]:
-        """``(mse (P,), bias (P,))``: mean squared residual [(m/s^2)^2] after the best constant bias."""
+        """``(mse (P,), bias (P,))``: mean squared residual [(m/s^2)^2] after the best constant bias [m/s^2].
+
+        The bias is the whole accelerometer bias: the prediction adds it to
+        :meth:`predict` (which, for an effect with ``bias_inside``, already
+        applied ``bias0`` before the effect and took it out again).
+        """
         pred, ok = self.predict(Z, dt)
         r = self.g_mean[None] - pred  # (P, G, nb)
         w = self.g_n[None, :, None]
@@ -380,7 +385,7 @@ class Evaluator:
         sse = np.sum(w * (r - bias[:, None, None]) ** 2, axis=(1, 2)) + self.within
         mse = sse / self.n_values
         mse = np.where(ok & np.isfinite(mse), mse, np.inf)
-        return mse, bias + self.bias0
+        return mse, bias
 
     # --- the effect's prediction context (slipest.model.effects.base.PredictionContext) -----------------
     def speed_groups(self):
