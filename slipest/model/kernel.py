@@ -23,6 +23,8 @@ Coordinates x forward, z up; foot at ``(xC, 0)``, hub at ``(xH, zH)``;
     vXH = (1 - i) lS omega cos(th)        imposed hub horizontal speed [m/s]
 
 Integration is fixed-step semi-implicit Euler (velocity first, then position).
+The loop's pieces (leg force, friction law, sliding step, recording, results)
+are ``inline="always"`` helpers, compiled into the one loop.
 
 Besides the nominal model the kernel carries the physical extensions that the
 sim-to-real diagnosis can switch on (all off at their neutral values):
