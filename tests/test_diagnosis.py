@@ -8,8 +8,8 @@ import pytest
 
 from slipest.diagnosis import localize
 from slipest.diagnosis.cycles import cut_cycles
-from slipest.diagnosis.fit import Evaluator, FitBudget, Geometry
-from slipest.diagnosis.predict import Grid
+from slipest.diagnosis.fit import FitBudget, Geometry
+from slipest.diagnosis.predict import Evaluator, Grid
 from slipest.diagnosis.rank import (
     Candidate,
     Thresholds,
@@ -169,6 +169,68 @@ def test_prediction_at_the_truth_matches_the_stream_within_noise(effect, values)
     assert abs(bias[0]) < 0.01
 
 
+@pytest.mark.parametrize(
+    "effect, fitted, catalog",
+    [
+        ("contact_damping", {"c_hc": 300.0 * (G / 1100.0), "n_hc": 1.0}, {"b_hc": 300.0, "n_hc": 1.0}),
+        ("stribeck", {"vs": 0.03, "delta": 2.0, "viscous": 0.5}, {"vs": 0.03, "delta": 2.0, "viscous": 0.5}),
+        ("speed_ripple", {"ripple_c": 0.2 * math.cos(0.6), "ripple_s": 0.2 * math.sin(0.6)},
+         {"amplitude": 0.2, "phase": 0.6}),
+        ("imu_saturation", {"full_scale": 12.5}, {"full_scale": 12.5}),
+    ],
+)
+def test_fit_parametrisation_maps_to_the_catalog_and_predicts_the_stream(effect, fitted, catalog):
+    """The fitted form converts to the simulator's parameters, and predicts the simulated stream at the truth."""
+    from slipest.diagnosis.fit import catalog_params
+
+    soil = {"kS": 1100.0, "phiS": 0.6, "phiD": 0.42, "kappa": 0.33}
+    truth = {"kS": soil["kS"], "phiS": soil["phiS"], "dphi": soil["phiS"] - soil["phiD"], "kappa": soil["kappa"],
+             **fitted}
+    got = catalog_params(effect, truth, Geometry())
+    assert got.keys() == catalog.keys()
+    for k, v in catalog.items():
+        assert got[k] == pytest.approx(v, rel=1e-9, abs=1e-12)
+    s = _log([0.15, 0.15, 0.4, 0.4, 0.3, 0.3], soil=soil, effects=({"name": effect, **catalog},), noise=0.01)
+    cs = _cycles(s)
+    ev = Evaluator(cs, np.arange(len(cs)), effect, Geometry())
+    mse, bias = ev.mse(ev.z_of(truth)[None])
+    excess = math.sqrt(max(mse[0] - np.mean(noise_floor(cs).var_bin), 0.0)) / G
+    assert excess < 0.005  # g: within the prediction's resampling error
+    assert abs(bias[0]) < 0.01
+
+
+def test_effects_at_their_fit_starts_predict_the_nominal_model():
+    """Where an effect's fit starts (FitParam.start) it is off: the nominal model's prediction, for every effect
+    that has such a value (Stribeck has none; the low-pass starts at its highest cut-off, not off)."""
+    from slipest.model.effects import EFFECTS
+
+    s = _log([0.2, 0.2, 0.45, 0.45], noise=0.0)
+    cs = _cycles(s)
+    soil = {"kS": 1000.0, "phiS": 0.52, "dphi": 0.17, "kappa": 0.3}
+    nominal = Evaluator(cs, np.arange(len(cs)), None, Geometry())
+    ref, _ = nominal.predict(nominal.z_of(soil)[None])
+    for name in ("contact_damping", "speed_ripple", "touchdown_impact", "imu_saturation", "angle_offset"):
+        ev = Evaluator(cs, np.arange(len(cs)), name, Geometry())
+        start = {fp.name: fp.start for fp in EFFECTS[name].fit_params}
+        pred, ok = ev.predict(ev.z_of({**soil, **start})[None])
+        assert ok[0]
+        # groups: effects with memory also split the cycles by their previous slip
+        np.testing.assert_allclose(pred[0][ev.group_of], ref[0][nominal.group_of], atol=1e-9, err_msg=name)
+
+
+def test_the_fitted_bias_is_the_data_bias_whatever_bias0():
+    """Evaluator.mse's bias is the log's whole accelerometer bias, not that plus the bias assumed before clipping."""
+    soil = {"kS": 1100.0, "phiS": 0.6, "phiD": 0.42, "kappa": 0.33}
+    s = _log([0.15, 0.15, 0.4, 0.4], soil=soil, effects=({"name": "angle_offset", "offset": 0.1},), noise=0.005)
+    cs = _cycles(s)
+    cs.y += 0.25  # a 0.25 m/s^2 accelerometer bias
+    truth = {"kS": soil["kS"], "phiS": soil["phiS"], "dphi": soil["phiS"] - soil["phiD"], "kappa": soil["kappa"]}
+    for bias0 in (0.0, 0.25):
+        ev = Evaluator(cs, np.arange(len(cs)), "angle_offset", Geometry(), bias0=bias0)
+        _, bias = ev.mse(ev.z_of({**truth, "offset": 0.1})[None])
+        assert bias[0] == pytest.approx(0.25, abs=0.01), bias0
+
+
 # --- CLI and end to end ------------------------------------------------------------------------
 
 
@@ -229,7 +291,7 @@ def test_end_to_end_names_a_strong_effect():
 def test_butterworth_sections_match_scipy_and_start_steady():
     from scipy import signal
 
-    from slipest.diagnosis.predict import butter_sections, lowpass_batch
+    from slipest.model.effects.imu_lowpass import butter_sections, lowpass_batch
 
     grid = Grid(4)
     fs = 0.63 / grid.dpsi
@@ -245,7 +307,7 @@ def test_butterworth_sections_match_scipy_and_start_steady():
 
 
 def test_expected_clip_is_the_mean_of_noisy_clipped_samples():
-    from slipest.diagnosis.fit import expected_clip
+    from slipest.model.effects.imu_saturation import expected_clip
 
     rng = np.random.default_rng(3)
     noise = rng.normal(0.0, 0.2, 400_000)
@@ -256,13 +318,13 @@ def test_expected_clip_is_the_mean_of_noisy_clipped_samples():
 
 
 def test_impact_train_is_the_sum_over_past_touchdowns():
-    from slipest.diagnosis.predict import impact_batch, psi_time
     from slipest.model.effects import impact_response
+    from slipest.model.effects.touchdown_impact import impact_batch
 
     grid = Grid(4)
     omega, A, tau, f = 0.63, -9.0, 0.8, 13.0
     train = impact_batch(grid, omega, [A], [tau], [f])[0]
-    t = psi_time(grid, omega)
+    t = grid.time(omega)
     period = 2 * math.pi / (4 * omega)
     explicit = sum(impact_response(t - j * period, A, tau, f) for j in range(-40, 2))
     np.testing.assert_allclose(train, explicit, atol=1e-9)

@@ -7,6 +7,7 @@ import pytest
 
 from slipest.diagnosis.synth import da_change
 from slipest.model.effects import (
+    CATALOG,
     EFFECTS,
     ORDER,
     AngleOffset,
@@ -18,7 +19,8 @@ from slipest.model.effects import (
     normalise_spec,
     parse_effect_arg,
 )
-from slipest.model.params import StickSlipParams
+from slipest.model import kernel as K
+from slipest.model.params import PARAM_NAMES, StickSlipParams
 from slipest.model.scenario import Scenario
 from slipest.model.stance import simulate_batch, simulate_stance
 from slipest.model.stream import simulate_stream
@@ -47,6 +49,36 @@ def test_catalog_names_units_and_ranges():
             assert p.check(name, p.default) == p.default
         d = spec.as_dict()
         assert [q["name"] for q in d["params"]] == list(spec.param_names)
+
+
+def test_each_effect_object_holds_its_pieces():
+    """Every catalog object: its fit parameters, and a simulator part of its kind that agrees with its prediction's."""
+    assert [e.name for e in CATALOG] == list(ORDER) and all(EFFECTS[e.name] is e for e in CATALOG)
+    base = StickSlipParams()
+    for e in CATALOG:
+        assert e.fit_params, e.name
+        for fp in e.fit_params:
+            assert fp.unit and fp.lo < fp.hi and fp.lo <= fp.start <= fp.hi, (e.name, fp.name)
+        values = e.defaults()
+        if e.kind == "physics":
+            # the simulator's fields and the prediction's kernel columns are one mapping
+            row = e.physics(base, values).to_row()
+            cols = e.kernel_columns(values)
+            assert cols and all(row[c] == v for c, v in cols.items()), e.name
+            assert all(field in PARAM_NAMES for _, field, _ in e.fields)
+            with pytest.raises(ValueError, match="not a sensor effect"):
+                e.stage(values)
+        else:
+            assert e.stage(values).domain == e.kind
+            assert e.kernel_columns(values) == {}
+            with pytest.raises(ValueError, match="not a physics effect"):
+                e.physics(base, values)
+    assert not hasattr(__import__("slipest.model.effects", fromlist=["x"]), "effect_names")
+
+
+def test_ripple_columns_are_the_kernel_fields():
+    e = EFFECTS["speed_ripple"]
+    assert e.kernel_columns({"amplitude": 0.2, "phase": 0.7}) == {K.P_RIPPLE_A: 0.2, K.P_RIPPLE_PH: 0.7}
 
 
 # --- parsing -----------------------------------------------------------------------------------

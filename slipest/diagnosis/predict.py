@@ -7,24 +7,30 @@ The model's cycle is deterministic given the slip and the soil, so the
 prediction for every cycle at one slip is one stance simulation.
 
 Pipeline, mirroring the simulated stream (SI units; ``az`` is the specific
-force with gravity, z up); arrays are ``(P candidates, G groups, ...)``:
+force with gravity, z up); arrays are ``(P candidates, G groups, ...)``;
+:class:`Evaluator` runs it for candidate parameter sets (soil + at most one
+catalog effect, :mod:`slipest.model.effects`) on a set of logged cycles:
 
-1. :func:`stance_fine` integrates many stances in one compiled parallel loop
+1. kernel rows: the soil, the slips, and the effect's kernel columns
+   (:meth:`~slipest.model.effects.base.Effect.kernel_columns`);
+   :func:`stance_fine` integrates many stances in one compiled parallel loop
    (the project's kernel, :func:`slipest.model.kernel.integrate_stance`)
    and averages each stance's ``zH''`` over ``m`` uniform bins of leg angle
    ``[0, pi/nL)`` (the *fine grid*), so only ``(B, m)`` numbers leave the
    loop;
-2. the caller lays a cycle out on an *extended* fine grid of true phase
-   ``psi`` in ``[-2 pi/nL, pi/nL + margin)`` (:class:`Grid`): the previous
-   cycle's stance (the source of the filter memory and of a positive
-   encoder offset), the rigid half (:func:`rigid_batch`: kinematic
-   ``-l (w^2 cos phi + w w' sin phi)``, ``l = lS - MH g/kS``), the stance,
-   and the start of the next rigid half;
-3. sensor effects act on it: the touchdown train (:func:`impact_batch`),
-   the IMU low-pass (:func:`lowpass_batch`, in time along the grid);
-4. :func:`bin_average_batch` averages the signal over the *analysis bins*
-   of the logged phase (an encoder offset shifts the logged phase against
-   the true one, ``phi_log = psi + offset``).
+2. a cycle is laid out on an *extended* fine grid of true phase ``psi`` in
+   ``[-2 pi/nL, pi/nL + margin)`` (:class:`Grid`): the previous cycle's
+   stance (the source of the filter memory and of a positive encoder
+   offset), the rigid half (:func:`rigid_batch`: kinematic
+   ``-l w^2 cos phi``, ``l = lS - MH g/kS``, or the effect's
+   :meth:`~slipest.model.effects.base.Effect.rigid`), the stance, and the
+   start of the next rigid half;
+3. the effect's sensor part acts on it and averages it over the *analysis
+   bins* of the logged phase
+   (:meth:`~slipest.model.effects.base.Effect.sense`, by default plain
+   :func:`bin_average_batch`);
+4. :meth:`Evaluator.mse`: the residual against the logged bin means after
+   the best constant bias.
 
 Everything is pure numpy/numba; nothing here knows about files.
 """
@@ -33,15 +39,64 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numba
 import numpy as np
 
 from slipest.features import bin_mean_fill
 from slipest.model import kernel as K
+from slipest.model.effects import EFFECTS, Effect, FitParam
+from slipest.model.params import StickSlipParams
+
+if TYPE_CHECKING:
+    from slipest.diagnosis.cycles import CycleSet
 
 #: Fine-grid bins per half cycle (``pi/nL`` of leg angle) [-].
 FINE_PER_HALF = 500
+#: Integration step of the refinement and of every reported gap [s] (the project's default).
+DT_FINE = 1e-4
+
+#: Soil (and leg) parameters of the nominal model: stiffness, static friction
+#: angle, friction angle drop ``phiS - phiD``, lateral leg stiffness ratio.
+SOIL_PARAMS = (
+    FitParam("kS", "N/m", 400.0, 2200.0, log=True),
+    FitParam("phiS", "rad", 0.25, 0.85),
+    FitParam("dphi", "rad", 0.0, 0.40),
+    FitParam("kappa", "-", 0.12, 0.7),
+)
+SOIL_NAMES = tuple(p.name for p in SOIL_PARAMS)
+
+#: The nominal model: no effect (every hook at its default).
+NO_EFFECT = Effect()
+
+
+def effect_model(effect: str | None) -> Effect:
+    """The catalog effect of a name (None: :data:`NO_EFFECT`); ValueError naming the known ones."""
+    if effect is None:
+        return NO_EFFECT
+    if effect not in EFFECTS:
+        raise ValueError(f"unknown effect {effect!r}; known: {', '.join(EFFECTS)}")
+    return EFFECTS[effect]
+
+
+def space(effect: str | None) -> tuple[FitParam, ...]:
+    """The fitted parameters of the nominal model (``None``) or of nominal + ``effect``."""
+    return SOIL_PARAMS + effect_model(effect).fit_params
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """The known hardware (not fitted): hub and foot masses [kg], spoke length [m], legs, gravity [m/s^2]."""
+
+    MH: float = 1.0
+    mF: float = 0.2
+    lS: float = 0.1763
+    nL: int = 4
+    g: float = 9.81
+
+    def base_row(self) -> np.ndarray:
+        return StickSlipParams(MH=self.MH, mF=self.mF, lS=self.lS, nL=self.nL, g=self.g).to_row()
 
 
 @numba.njit(cache=True, parallel=True)
@@ -144,116 +199,26 @@ class Grid:
         e = self.bin_edges
         return 0.5 * (e[1:] + e[:-1])
 
+    @property
+    def rigid_psi(self) -> np.ndarray:
+        """Fine-bin centres [rad] of the rigid half ``[-pi/nL, 0)``."""
+        return -self.half + (np.arange(self.m) + 0.5) * self.dpsi
 
-def psi_time(grid: Grid, omega: float) -> np.ndarray:
-    """Time [s] of the extended grid's centres relative to the cycle's start (phase ``-pi/nL``), constant speed."""
-    return (grid.psi + grid.half) / omega
+    def time(self, omega: float) -> np.ndarray:
+        """Time [s] of the extended grid's centres since the cycle's start (phase ``-pi/nL``), constant speed [rad/s]."""
+        return (self.psi + self.half) / omega
 
 
-def butter_sections(order: int, cutoff: float, fs: float) -> np.ndarray:
-    """Butterworth low-pass as second-order sections ``(n_sec, 5)`` rows ``b0 b1 b2 a1 a2``.
+def rigid_batch(grid: Grid, leg: np.ndarray, omega: np.ndarray) -> np.ndarray:
+    """Rigid-half ``zH''`` [m/s^2] at constant leg speed, candidates ``leg (P,)`` [m], groups ``omega (G,)`` [rad/s].
 
-    Bilinear transform with the cut-off prewarped, as ``scipy.signal.butter``
-    does (same filter; a first-order section has ``b2 = a2 = 0``).
+    ``-l w^2 cos(phi)`` on the rigid half's fine bins. Returns ``(P, G, m)``.
     """
-    k = math.tan(math.pi * cutoff / fs)
-    rows = []
-    for j in range(order // 2):
-        theta = math.pi * (2 * j + 1) / (2 * order)
-        q = 1.0 / (2 * math.sin(theta))
-        norm = 1.0 / (1 + k / q + k * k)
-        b0 = k * k * norm
-        rows.append((b0, 2 * b0, b0, 2 * (k * k - 1) * norm, (1 - k / q + k * k) * norm))
-    if order % 2:
-        b0 = k / (1 + k)
-        rows.append((b0, b0, 0.0, (k - 1) / (k + 1), 0.0))
-    return np.array(rows, dtype=float)
-
-
-# --- batched versions (one row per candidate x group) --------------------------------------------
-
-
-def rigid_batch(grid: Grid, leg: np.ndarray, omega: np.ndarray, ripple_a=None, ripple_ph=None) -> np.ndarray:
-    """Rigid-half ``zH''`` [m/s^2] for candidates ``leg (P,)`` [m] and groups ``omega (G,)`` or ``(P, G)`` [rad/s].
-
-    Optional drive ripple per candidate (``ripple_a``, ``ripple_ph`` ``(P,)``).
-    Returns ``(P, G, m)``.
-    """
-    phi = -grid.half + (np.arange(grid.m) + 0.5) * grid.dpsi
+    phi = grid.rigid_psi
     leg = np.asarray(leg, dtype=float)[:, None, None]
     w0 = np.asarray(omega, dtype=float)
     w0 = np.broadcast_to(w0, (leg.shape[0],) + w0.shape[-1:])[:, :, None]
-    if ripple_a is None:
-        return -leg * np.cos(phi)[None, None, :] * w0**2
-    a = np.asarray(ripple_a, dtype=float)[:, None, None]
-    arg = grid.n_legs * phi[None, None, :] + np.asarray(ripple_ph, dtype=float)[:, None, None]
-    w = w0 * (1.0 + a * np.sin(arg))
-    dw = w0 * a * grid.n_legs * np.cos(arg)
-    return -leg * (np.cos(phi)[None, None, :] * w * w + np.sin(phi)[None, None, :] * w * dw)
-
-
-def impact_batch(grid: Grid, omega: float, amplitude, tau, freq) -> np.ndarray:
-    """The touchdown train for candidates (arrays ``(P,)``): ``(P, n_ext)`` [m/s^2], constant leg speed.
-
-    Every boundary ``k T`` (``T = 2 pi/(nL omega)``) up to a point contributes
-    ``A exp(-s/tau) sin(2 pi f s)``, ``s`` its age; summed over the whole past
-    (a geometric series): ``Im(A exp(l s0) / (1 - exp(l T)))`` with
-    ``l = -1/tau + 2 pi i f`` and ``s0`` the age of the latest boundary.
-    """
-    amplitude = np.asarray(amplitude, dtype=float)[:, None]
-    tau = np.asarray(tau, dtype=float)[:, None]
-    freq = np.asarray(freq, dtype=float)[:, None]
-    t = psi_time(grid, omega)[None, :]
-    period = 2 * grid.half / omega
-    s0 = t - np.floor(t / period) * period
-    lam = -1.0 / tau + 2j * math.pi * freq
-    return amplitude * np.imag(np.exp(lam * s0) / (1.0 - np.exp(lam * period)))
-
-
-@numba.njit(cache=True, parallel=True)
-def _sos_rows(x, sos, nsec, out):
-    """Filter row ``r`` of ``x`` with its own ``nsec[r]`` sections ``sos[r]``, steady start."""
-    n_rows, n = x.shape
-    for r in numba.prange(n_rows):
-        for i in range(n):
-            out[r, i] = x[r, i]
-        for s in range(nsec[r]):
-            b0, b1, b2, a1, a2 = sos[r, s, 0], sos[r, s, 1], sos[r, s, 2], sos[r, s, 3], sos[r, s, 4]
-            x0 = out[r, 0]
-            z2 = (b2 - a2) * x0
-            z1 = (b1 - a1) * x0 + z2
-            for i in range(n):
-                xi = out[r, i]
-                yi = b0 * xi + z1
-                z1 = b1 * xi - a1 * yi + z2
-                z2 = b2 * xi - a2 * yi
-                out[r, i] = yi
-
-
-def lowpass_batch(x: np.ndarray, grid: Grid, omega: float, cutoff, order) -> np.ndarray:
-    """Butterworth low-pass of ``x (P, G, n)`` with a cut-off [Hz] and integer order per candidate ``(P,)``.
-
-    Candidates whose cut-off is not below the Nyquist frequency give NaN.
-    """
-    fs = omega / grid.dpsi
-    P, G, n = x.shape
-    cutoff = np.asarray(cutoff, dtype=float)
-    order = np.asarray(order).astype(int)
-    n_sec_max = int((order.max() + 1) // 2)
-    sos = np.zeros((P, n_sec_max, 5))
-    nsec = np.zeros(P, dtype=np.int64)
-    bad = ~((cutoff > 0) & (cutoff < fs / 2))
-    for p in range(P):
-        if bad[p]:
-            continue
-        s = butter_sections(int(order[p]), float(cutoff[p]), fs)
-        sos[p, : len(s)] = s
-        nsec[p] = len(s)
-    out = np.empty((P * G, n))
-    _sos_rows(np.ascontiguousarray(x.reshape(P * G, n)), np.repeat(sos, G, axis=0), np.repeat(nsec, G), out)
-    out = out.reshape(P, G, n)
-    out[bad] = np.nan
-    return out
+    return -leg * np.cos(phi)[None, None, :] * w0**2
 
 
 def bin_average_batch(grid: Grid, x: np.ndarray, offset=None) -> np.ndarray:
@@ -271,3 +236,180 @@ def bin_average_batch(grid: Grid, x: np.ndarray, offset=None) -> np.ndarray:
     idx = np.broadcast_to(i[:, None, :], (P, G, i.shape[1]))
     c_at = np.take_along_axis(csum, idx, axis=2) + frac[:, None, :] * np.take_along_axis(x, idx, axis=2)
     return np.diff(c_at, axis=2) / np.diff(pos, axis=1)[:, None, :]
+
+
+class Evaluator:
+    """Prediction and objective of candidates on a fixed set of cycles (see the module docstring).
+
+    cycles: the :class:`~slipest.diagnosis.cycles.CycleSet`; idx: the
+    cycles used; effect: catalog name or None; geometry: the known hardware;
+    bias0 [m/s^2]: bias assumed before the sampled stages (clipping), the
+    rest is fitted in closed form; solve_linear: the effect's ``linear`` fit
+    parameters are solved in closed form (their values, per candidate, in
+    :attr:`last_linear` after each prediction) instead of taken from the
+    candidates.
+
+    Cycles with the same leg speed and slip (and, for effects with memory
+    across the cycle boundary, the same previous slip) share one prediction
+    (a *group*), so the objective only needs the groups' means and one
+    stance simulation per distinct slip. The evaluator is the
+    :class:`~slipest.model.effects.base.PredictionContext` of the effect's
+    sensor part.
+    """
+
+    def __init__(self, cycles: CycleSet, idx, effect: str | None, geometry: Geometry, bias0: float = 0.0,
+                 solve_linear: bool = False):
+        self.cycles = cycles
+        self.solve_linear = solve_linear
+        self.last_linear: dict = {}
+        self.noise_sigma = float(np.sqrt(np.mean(cycles.noise**2))) if np.all(np.isfinite(cycles.noise)) else 0.0
+        self.idx = np.asarray(idx, dtype=np.int64)
+        if self.idx.size == 0:
+            raise ValueError("no cycles to fit")
+        self.effect = effect
+        self.model = effect_model(effect)
+        self.geometry = geometry
+        self.grid: Grid = cycles.grid
+        self.params = space(effect)
+        self.names = tuple(p.name for p in self.params)
+        self._col = {n: j for j, n in enumerate(self.names)}
+        self.bias0 = float(bias0)
+        sl = cycles.slip[self.idx]
+        pv = cycles.prev_slip[self.idx] if self.model.memory else sl
+        om = np.round(cycles.omega[self.idx], 9)
+        keys = np.stack([om, pv, sl], axis=1)
+        uniq, inv = np.unique(keys, axis=0, return_inverse=True)
+        inv = inv.ravel()
+        self.n_groups = len(uniq)
+        self.group_of = inv
+        self.g_omega = uniq[:, 0]
+        self.g_prev = uniq[:, 1]
+        self.g_slip = uniq[:, 2]
+        y = cycles.y[self.idx]
+        self.g_n = np.bincount(inv, minlength=self.n_groups).astype(float)
+        self.g_mean = np.stack([y[inv == g].mean(axis=0) for g in range(self.n_groups)])
+        self.within = float(np.sum((y - self.g_mean[inv]) ** 2))
+        self.n_values = y.size
+        sims = np.unique(np.concatenate([np.stack([self.g_omega, self.g_slip], 1), np.stack([self.g_omega, self.g_prev], 1)]), axis=0)
+        self.sim_omega = sims[:, 0]
+        self.sim_slip = sims[:, 1]
+        lookup = {(o, s): j for j, (o, s) in enumerate(map(tuple, sims))}
+        self.g_sim = np.array([lookup[(o, s)] for o, s in zip(self.g_omega, self.g_slip)])
+        self.g_sim_prev = np.array([lookup[(o, s)] for o, s in zip(self.g_omega, self.g_prev)])
+        self._base = geometry.base_row()
+        self.n_evals = 0
+        self._cache = None
+
+    # --- parameter vectors ---------------------------------------------------
+    @property
+    def zbounds(self):
+        return [p.zbounds for p in self.params]
+
+    def values(self, z) -> dict:
+        return {p.name: float(p.from_z(zi)) for p, zi in zip(self.params, z)}
+
+    def z_of(self, values: dict) -> np.ndarray:
+        return np.array([float(p.to_z(values[p.name])) for p in self.params])
+
+    def _catalog(self, V: np.ndarray, shape=None) -> dict:
+        """The effect's catalog values for candidate values ``V (P, D)`` (columns reshaped by ``shape``)."""
+        cols = {n: (V[:, j] if shape is None else shape(V[:, j])) for j, n in enumerate(self.names)}
+        fitted = {p.name: cols[p.name] for p in self.model.fit_params}
+        soil = {n: cols[n] for n in SOIL_NAMES}
+        return self.model.catalog_values(fitted, soil, self.geometry)
+
+    def _rows(self, V: np.ndarray) -> np.ndarray:
+        """Kernel rows ``(P * S, N_PARAMS)`` for candidate values ``V (P, D)`` and the distinct slips."""
+        P, S = V.shape[0], len(self.sim_slip)
+        col = self._col
+        rows = np.tile(self._base, (P, S, 1))
+        ks = V[:, col["kS"]][:, None]
+        phis = V[:, col["phiS"]][:, None]
+        phid = np.maximum(phis - V[:, col["dphi"]][:, None], 0.02)
+        rows[:, :, K.P_SLIP] = self.sim_slip[None, :]
+        rows[:, :, K.P_KS] = ks
+        rows[:, :, K.P_MUS] = np.tan(phis)
+        rows[:, :, K.P_MUD] = np.tan(phid)
+        rows[:, :, K.P_KAPPA] = V[:, col["kappa"]][:, None]
+        omega0 = np.broadcast_to(self.sim_omega[None, :], (P, S)).copy()
+        cat = self._catalog(V, lambda v: v[:, None])
+        for column, value in self.model.kernel_columns(cat).items():
+            rows[:, :, column] = value
+        rows[:, :, K.P_OMEGA] = self.model.drive_speed(omega0, cat)
+        return rows.reshape(P * S, K.N_PARAMS)
+
+    # --- prediction ----------------------------------------------------------
+    def predict(self, Z: np.ndarray, dt: float = DT_FINE) -> tuple[np.ndarray, np.ndarray]:
+        """Bin predictions ``(P, G, nb)`` [m/s^2] (without the fitted bias) and an OK mask ``(P,)``."""
+        Z = np.atleast_2d(Z)
+        V = np.stack([p.from_z(Z[:, j]) for j, p in enumerate(self.params)], axis=1)
+        P, S = V.shape[0], len(self.sim_slip)
+        rows = self._rows(V)
+        first = rows[:S]
+        if P > 1 and np.array_equal(rows, np.tile(first, (P, 1))):
+            # every candidate shares the physics (e.g. only sensor parameters vary): simulate once
+            key = (first.tobytes(), dt)
+            if self._cache is None or self._cache[0] != key:
+                self._cache = (key,) + stance_fine(first, dt=dt, m=self.grid.m)
+            fine = np.broadcast_to(self._cache[1], (P,) + self._cache[1].shape)
+            status = np.tile(self._cache[2], P)
+        else:
+            fine, status = stance_fine(rows, dt=dt, m=self.grid.m)
+        fine = fine.reshape(P, S, -1)
+        ok = np.all(status.reshape(P, S) == K.STATUS_OK, axis=1)
+        self.n_evals += P
+        geo, grid = self.geometry, self.grid
+        leg = geo.lS - geo.MH * geo.g / V[:, self._col["kS"]]
+        cat = self._catalog(V)
+        rig = self.model.rigid(grid, leg, self.g_omega, cat)
+        if rig is None:
+            rig = rigid_batch(grid, leg, self.g_omega)
+        x = np.concatenate([fine[:, self.g_sim_prev], rig, fine[:, self.g_sim], rig[:, :, : grid.n_margin]], axis=2)
+        x += geo.g
+        out = self.model.sense(x, cat, self)
+        out[~ok] = np.nan
+        return out, ok
+
+    def mse(self, Z: np.ndarray, dt: float = DT_FINE) -> tuple[np.ndarray, np.ndarray]:
+        """``(mse (P,), bias (P,))``: mean squared residual [(m/s^2)^2] after the best constant bias [m/s^2].
+
+        The bias is the whole accelerometer bias: the prediction adds it to
+        :meth:`predict` (which, for an effect with ``bias_inside``, already
+        applied ``bias0`` before the effect and took it out again).
+        """
+        pred, ok = self.predict(Z, dt)
+        r = self.g_mean[None] - pred  # (P, G, nb)
+        w = self.g_n[None, :, None]
+        nb = self.grid.nb
+        bias = np.sum(w * r, axis=(1, 2)) / (nb * self.g_n.sum())
+        sse = np.sum(w * (r - bias[:, None, None]) ** 2, axis=(1, 2)) + self.within
+        mse = sse / self.n_values
+        mse = np.where(ok & np.isfinite(mse), mse, np.inf)
+        return mse, bias
+
+    # --- the effect's prediction context (slipest.model.effects.base.PredictionContext) -----------------
+    def speed_groups(self):
+        """``(omega, mask (G,))`` per distinct mean leg speed of the groups."""
+        for om in np.unique(self.g_omega):
+            yield om, self.g_omega == om
+
+    def bin_average(self, x: np.ndarray, offset=None) -> np.ndarray:
+        """:func:`bin_average_batch` on this evaluator's grid."""
+        return bin_average_batch(self.grid, x, offset)
+
+    def solve_amplitude(self, param: FitParam, m0: np.ndarray, h: np.ndarray) -> np.ndarray:
+        """Least-squares ``A (P,)`` of ``group means ~ b + m0 + A h`` (weights: cycles per group), in ``param``'s range.
+
+        Recorded in :attr:`last_linear` under ``param.name``.
+        """
+        w = self.g_n[None, :, None]
+        r = self.g_mean[None] - m0
+        # normal equations of r ~ b + A h, weights n_g, summed over groups and bins
+        s1 = float(np.sum(self.g_n)) * self.grid.nb
+        sh, shh = np.sum(w * h, axis=(1, 2)), np.sum(w * h * h, axis=(1, 2))
+        sr, shr = np.sum(w * r, axis=(1, 2)), np.sum(w * h * r, axis=(1, 2))
+        det = s1 * shh - sh * sh
+        amp = np.where(det > 1e-12, (s1 * shr - sh * sr) / np.where(det > 1e-12, det, 1.0), 0.0)
+        amp = np.clip(amp, param.lo, param.hi)
+        self.last_linear[param.name] = amp
+        return amp

@@ -31,7 +31,7 @@ import numpy as np
 
 from slipest.diagnosis import localize
 from slipest.diagnosis.cycles import CycleSet
-from slipest.diagnosis.fit import EFFECT_PARAMS, FitBudget, FitResult, Geometry, catalog_params, evaluate, fit, fit_effect
+from slipest.diagnosis.fit import FitBudget, FitResult, Geometry, catalog_params, evaluate, fit, fit_effect
 from slipest.diagnosis.rank import (
     Candidate,
     NoiseFloor,
@@ -44,7 +44,7 @@ from slipest.diagnosis.rank import (
     split_cycles,
     verdict,
 )
-from slipest.model.effects import ORDER
+from slipest.model.effects import EFFECTS, ORDER
 
 #: ``progress(done, total, label)``: work units done of the planned total, and what is running.
 Progress = Callable[[int, int, str], None]
@@ -115,7 +115,7 @@ def diagnose(
     """Diagnose the cycles (see the module docstring). ``effects``: catalog names (default: all)."""
     t_start = time.perf_counter()
     effects = list(ORDER if effects is None else effects)
-    unknown = [e for e in effects if e not in EFFECT_PARAMS]
+    unknown = [e for e in effects if e not in EFFECTS]
     if unknown:
         raise ValueError(f"unknown effect(s) {unknown}; known: {', '.join(ORDER)}")
     split = split_cycles(cycles.slip)
@@ -160,7 +160,7 @@ def diagnose(
                     gap_heldout=g,
                     shrink=shrink_of(gap_nom, g),
                     gap_train=g_train,
-                    n_params=len(EFFECT_PARAMS[name]),
+                    n_params=len(EFFECTS[name].fit_params),
                     soil=r.soil(),
                 )
             )

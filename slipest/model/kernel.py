@@ -23,6 +23,8 @@ Coordinates x forward, z up; foot at ``(xC, 0)``, hub at ``(xH, zH)``;
     vXH = (1 - i) lS omega cos(th)        imposed hub horizontal speed [m/s]
 
 Integration is fixed-step semi-implicit Euler (velocity first, then position).
+The loop's pieces (leg force, friction law, sliding step, recording, results)
+are ``inline="always"`` helpers, compiled into the one loop.
 
 Besides the nominal model the kernel carries the physical extensions that the
 sim-to-real diagnosis can switch on (all off at their neutral values):
@@ -102,14 +104,89 @@ STATUS_ILL_POSED = 4  # literal model (kappa = 0): the foot slid out of the fric
 RUNAWAY_LIMIT = 50.0 * 9.81
 
 
-@numba.njit(cache=True, inline="always", error_model="numpy")
+_INLINE = dict(cache=True, inline="always", error_model="numpy")
+
+
+@numba.njit(**_INLINE)
 def _omega_at(omega0, ripple_a, ripple_ph, n_legs, th):
     return omega0 * (1.0 + ripple_a * math.sin(n_legs * th + ripple_ph))
 
 
-@numba.njit(cache=True, inline="always", error_model="numpy")
+@numba.njit(**_INLINE)
 def _sign(x):
     return 1.0 if x > 0.0 else (-1.0 if x < 0.0 else 0.0)
+
+
+@numba.njit(**_INLINE)
+def _leg_force(xh, zh, xc, vxh, vc, vz, s, c, ls, ks, kappa, bhc, nhc):
+    """Spring force ``FS`` [N] (Eq. 5.13 + Hunt-Crossley damping, clamped >= 0) and the leg's force on the
+    hub ``(FH_x, FH_z)`` [N] (spring along the leg, lateral stiffness ``kappa kS`` across it)."""
+    dx = xh - xc
+    length = math.sqrt(zh * zh + dx * dx)
+    comp = ls - length
+    fs = ks * comp
+    if bhc > 0.0 and comp > 0.0:
+        comp_rate = -(dx * (vxh - vc) + zh * vz) / length
+        fs += bhc * comp**nhc * comp_rate
+        if fs < 0.0:
+            fs = 0.0
+    off = dx * c - zh * s
+    fhx = fs * s - kappa * ks * off * c
+    fhz = fs * c + kappa * ks * off * s
+    return fs, fhx, fhz
+
+
+@numba.njit(**_INLINE)
+def _friction_coefficient(vc, mus, mud, vs, sexp):
+    """Sliding friction coefficient: Stribeck ``muD + (muS - muD) exp(-(|v|/vs)^delta)``, or ``muD`` if ``vs = 0``."""
+    if vs > 0.0:
+        return mud + (mus - mud) * math.exp(-((abs(vc) / vs) ** sexp))
+    return mud
+
+
+@numba.njit(**_INLINE)
+def _slide(vc, xc, fe, fn, mu, visc, inv_mf, dt):
+    """One step of the sliding foot (Eq. 5.12 + viscous term): ``(stuck, vC, xC)``; it sticks when vC changes sign."""
+    sgn = _sign(vc) if vc != 0.0 else _sign(fe)
+    ac = (fe - mu * fn * sgn - visc * vc) * inv_mf
+    vc_new = vc + ac * dt
+    if vc != 0.0 and vc_new * vc < 0.0:
+        return True, 0.0, xc
+    return False, vc_new, xc + vc_new * dt
+
+
+@numba.njit(**_INLINE)
+def _record(rec, n, th, az, stick, contact, fn, fe, fs, zh, xh, xc, vc):
+    """Row ``n`` of the waveform buffer (as many ``CH_*`` channels as it has)."""
+    n_ch = rec.shape[1]
+    if n < rec.shape[0] and n_ch > 0:
+        r = rec[n]
+        r[CH_THETA] = th
+        r[CH_AZ] = az
+        if n_ch > CH_STICK:
+            r[CH_STICK] = 1.0 if stick else 0.0
+            r[CH_CONTACT] = 1.0 if contact else 0.0
+        if n_ch > CH_FN:
+            r[CH_FN] = fn
+            r[CH_FE] = fe
+            r[CH_FS] = fs
+            r[CH_ZH] = zh
+            r[CH_XH] = xh
+            r[CH_XC] = xc
+            r[CH_VC] = vc
+
+
+@numba.njit(**_INLINE)
+def _write_results(res, az_max, az_min, breakaway, n_break, n_loss, status, status_th, n):
+    """The per-element results row (see ``R_*``)."""
+    res[R_AZ_MAX] = az_max
+    res[R_AZ_MIN] = az_min
+    res[R_BREAKAWAY] = breakaway
+    res[R_N_BREAKAWAY] = n_break
+    res[R_N_CONTACT_LOSS] = n_loss
+    res[R_STATUS] = status
+    res[R_STATUS_THETA] = status_th
+    res[R_N_STEPS] = n
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -128,21 +205,13 @@ def integrate_stance(p, dt, max_steps, res, rec):
     mud = p[P_MUD]
     kappa = p[P_KAPPA]
     mh = p[P_MH]
-    mf = p[P_MF]
     ls = p[P_LS]
     omega0 = p[P_OMEGA]
     n_legs = p[P_NL]
     g = p[P_G]
-    bhc = p[P_BHC]
-    nhc = p[P_NHC]
-    vs = p[P_VS]
-    sexp = p[P_SEXP]
-    visc = p[P_VISC]
     ripple_a = p[P_RIPPLE_A]
     ripple_ph = p[P_RIPPLE_PH]
     th_end = math.pi / n_legs
-    n_rec = rec.shape[0]
-    n_ch = rec.shape[1]
 
     # static equilibrium at midstance: the spring carries the hub's weight
     th = 0.0
@@ -164,7 +233,7 @@ def integrate_stance(p, dt, max_steps, res, rec):
     status_th = math.nan
     n = 0
     inv_mh = 1.0 / mh
-    inv_mf = 1.0 / mf
+    inv_mf = 1.0 / p[P_MF]
     # With a constant leg speed the angle grows by a fixed step: rotate
     # (sin, cos) by it instead of calling sin and cos every step (the
     # recurrence drifts by ~1e-12 over a stance; Da agrees to 1e-11).
@@ -192,18 +261,7 @@ def integrate_stance(p, dt, max_steps, res, rec):
             vc = 0.0
             stick = True
 
-        dx = xh - xc
-        length = math.sqrt(zh * zh + dx * dx)
-        comp = ls - length
-        fs = ks * comp
-        if bhc > 0.0 and comp > 0.0:
-            comp_rate = -(dx * (vxh - vc) + zh * vz) / length
-            fs += bhc * comp**nhc * comp_rate
-            if fs < 0.0:
-                fs = 0.0
-        off = dx * c - zh * s
-        fhx = fs * s - kappa * ks * off * c
-        fhz = fs * c + kappa * ks * off * s
+        fs, fhx, fhz = _leg_force(xh, zh, xc, vxh, vc, vz, s, c, ls, ks, kappa, p[P_BHC], p[P_NHC])
         fn = fhz
         fe = -fhx
 
@@ -228,38 +286,13 @@ def integrate_stance(p, dt, max_steps, res, rec):
                 if n_break == 1:
                     breakaway = th
             if not stick:
-                sgn = _sign(vc) if vc != 0.0 else _sign(fe)
-                if vs > 0.0:
-                    mu = mud + (mus - mud) * math.exp(-((abs(vc) / vs) ** sexp))
-                else:
-                    mu = mud
-                ac = (fe - mu * fn * sgn - visc * vc) * inv_mf
-                vc_new = vc + ac * dt
-                if vc != 0.0 and vc_new * vc < 0.0:
-                    stick = True
-                    vc = 0.0
-                else:
-                    vc = vc_new
-                    xc += vc * dt
+                mu = _friction_coefficient(vc, mus, mud, p[P_VS], p[P_SEXP])
+                stick, vc, xc = _slide(vc, xc, fe, fn, mu, p[P_VISC], inv_mf, dt)
             az = fhz * inv_mh - g
         else:
             az = -g
 
-        if n < n_rec and n_ch > 0:
-            r = rec[n]
-            r[CH_THETA] = th
-            r[CH_AZ] = az
-            if n_ch > CH_STICK:
-                r[CH_STICK] = 1.0 if stick else 0.0
-                r[CH_CONTACT] = 1.0 if contact else 0.0
-            if n_ch > CH_FN:
-                r[CH_FN] = fn
-                r[CH_FE] = fe
-                r[CH_FS] = fs
-                r[CH_ZH] = zh
-                r[CH_XH] = xh
-                r[CH_XC] = xc
-                r[CH_VC] = vc
+        _record(rec, n, th, az, stick, contact, fn, fe, fs, zh, xh, xc, vc)
 
         if az > az_max:
             az_max = az
@@ -287,14 +320,7 @@ def integrate_stance(p, dt, max_steps, res, rec):
         # literal model: broke away at th = phiS and was never held again
         status = STATUS_ILL_POSED
         status_th = th
-    res[R_AZ_MAX] = az_max
-    res[R_AZ_MIN] = az_min
-    res[R_BREAKAWAY] = breakaway
-    res[R_N_BREAKAWAY] = n_break
-    res[R_N_CONTACT_LOSS] = n_loss
-    res[R_STATUS] = status
-    res[R_STATUS_THETA] = status_th
-    res[R_N_STEPS] = n
+    _write_results(res, az_max, az_min, breakaway, n_break, n_loss, status, status_th, n)
 
 
 @numba.njit(cache=True, parallel=True, error_model="numpy")
