@@ -19,17 +19,15 @@ from __future__ import annotations
 
 import argparse
 
+from slipest.cli.command import add_command
+
 
 def add_parser(sub) -> None:
     from slipest.cli.live_args import add_live_arguments
     from slipest.io.bus_args import add_bus_arguments
 
-    p = sub.add_parser(
-        "can",
-        help="estimate slip live from a CAN bus (DBC messages) and publish the estimates on it",
-        description=__doc__.split("\n\n", 1)[1],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    p = add_command(sub, "can",
+                    "estimate slip live from a CAN bus (DBC messages) and publish the estimates on it", __doc__)
     add_bus_arguments(p)
     p.add_argument("--no-publish", action="store_true", help="do not send SlipEstimate messages")
     add_live_arguments(p, "the bus")

@@ -10,18 +10,16 @@ Ctrl-C or SIGTERM and prints its counters.
 from __future__ import annotations
 
 import argparse
+
+from slipest.cli.command import add_command
 import sys
 
 
 def add_parser(sub) -> None:
     from slipest.io.socketcand_server import DEFAULT_CHANNEL, DEFAULT_PORT
 
-    p = sub.add_parser(
-        "can-server",
-        help="run a shared virtual CAN bus (socketcand protocol, loopback only)",
-        description=__doc__.split("\n\n", 1)[1],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    p = add_command(sub, "can-server",
+                    "run a shared virtual CAN bus (socketcand protocol, loopback only)", __doc__)
     p.add_argument("--host", default="127.0.0.1", help="loopback address to listen on (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"TCP port (default {DEFAULT_PORT}; 0: a free one)")
     p.add_argument("--channel", action="append", dest="channels", metavar="NAME",

@@ -19,6 +19,8 @@ estimates from damaged cycles.
 from __future__ import annotations
 
 import argparse
+
+from slipest.cli.command import add_command
 import math
 import os
 import queue
@@ -47,12 +49,8 @@ _STRETCHES = ("firm soil, steady slip", "same soil, slip rising", "stiffer, grip
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser(
-        "demo",
-        help="run the virtual device and the live estimator side by side (no hardware needed)",
-        description=__doc__.split("\n\n", 1)[1],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    p = add_command(sub, "demo",
+                    "run the virtual device and the live estimator side by side (no hardware needed)", __doc__)
     p.add_argument("--bus", choices=("serial", "can"), default="serial",
                    help="link between device and estimator: a pseudo-terminal (default) or the CAN server")
     p.add_argument("--speed", type=float, default=1.0, help="time factor of the device (default 1: real time)")

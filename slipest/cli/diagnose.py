@@ -7,7 +7,9 @@ model's soil, localises the remaining gap, refits soil + each catalog effect
 on training cycles, compares held-out gaps and names the effect, ``none`` or
 ``unexplained``. The known hardware (``nL``, ``MH``, ``mF``, ``lS``) comes
 from the logs' metadata when present (options override); the soil, ``kappa``
-and any effect are never read from the metadata.
+and any effect are never read from the metadata. The gap is the RMS
+difference of phase-binned az waveforms in excess of the noise floor [g]
+(see slipest.diagnosis.rank).
 """
 
 from __future__ import annotations
@@ -16,17 +18,12 @@ import argparse
 import json
 import sys
 
+from slipest.cli.command import add_command
+
 
 def add_parser(sub) -> None:
-    p = sub.add_parser(
-        "diagnose",
-        help="explain the gap between real logs and the model with the sim-to-real effect catalog",
-        description="Fit the stick-slip model's soil to logged leg cycles (slip known from the log's 'slip' "
-        "column), measure the remaining gap on held-out cycles, localise it (leg-angle window, feature, slip), "
-        "refit with each catalog effect and name the one that shrinks the held-out gap, or 'none' / "
-        "'unexplained'. The gap is the RMS difference of phase-binned az waveforms in excess of the noise "
-        "floor [g] (see slipest.diagnosis.rank).",
-    )
+    p = add_command(sub, "diagnose", "explain the gap between real logs and the model with the sim-to-real effect "
+                    "catalog", __doc__)
     p.add_argument("logs", nargs="+", metavar="LOG.csv", help="log files (t, az, theta, slip)")
     p.add_argument("--json", metavar="FILE", help="write the report as JSON (keys verdict, gap_nominal, where, ranking, ...)")
     p.add_argument("--plots", metavar="DIR", help="write PNG plots (waveforms, gap by angle, ranking) into DIR")

@@ -1,11 +1,14 @@
 """``slipest replay``: run the slip estimator over a logged CSV, one output row per leg cycle.
 
-Reads the log in bounded-memory chunks (:class:`slipest.io.log_csv.LogReader`),
-feeds :class:`slipest.online.SlipEstimator` and writes every leg cycle's
-estimate to stdout (or ``-o FILE``) as CSV (default) or JSON lines. A
-summary (samples, skipped rows, cycles estimated and flagged, and with
-``--truth`` the errors against the log's ``slip`` column) goes to stderr,
-so stdout stays machine-readable.
+Run the online slip estimator over a log (columns t, az, theta, optional
+slip; '# key=value' metadata such as '# nL=4') and write one row per leg
+cycle, to stdout (or -o FILE) as CSV (default) or JSON lines: the fields of
+slipest.online.Estimate. Units: t [s], delta_a [g], slip [-], dphi, phiS
+[rad], kS [N/m]. A cycle that cannot be estimated has NaN values and its
+quality says why. A summary (samples, skipped rows, cycles estimated and
+flagged, and with --truth the errors against the log's slip column) goes to
+stderr, so stdout stays machine-readable. The log is read in bounded-memory
+chunks.
 
 The ``slip`` column is ignored by the estimator unless ``--use-reference``
 is given, so a log with the truth in it is still a blind test; ``--truth``
@@ -22,6 +25,7 @@ import sys
 import numpy as np
 
 from slipest.cli import estimate_output
+from slipest.cli.command import add_command
 from slipest.cli.estimator_args import add_estimator_arguments, model_from_args, soil_from_args
 from slipest.io.log_csv import LogFormatError, LogReader
 from slipest.online import ESTIMATE_FIELDS, SlipEstimator
@@ -31,14 +35,7 @@ COLUMNS = ESTIMATE_FIELDS
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser(
-        "replay",
-        help="estimate slip (and soil) per leg cycle from a logged CSV",
-        description="Run the online slip estimator over a log (columns t, az, theta, optional slip; '# key=value' "
-        "metadata such as '# nL=4') and write one row per leg cycle: " + ", ".join(COLUMNS) + ". Units: t [s], "
-        "delta_a [g], slip [-], dphi/phiS [rad], kS [N/m]. A cycle that cannot be estimated has NaN values and "
-        "its quality says why. Summary on stderr.",
-    )
+    p = add_command(sub, "replay", "estimate slip (and soil) per leg cycle from a logged CSV", __doc__)
     p.add_argument("log", metavar="LOG.csv", help="the log to replay ('-': stdin)")
     p.add_argument("-o", "--output", default="-", help="output file ('-' or omitted: stdout)")
     p.add_argument("--format", choices=("csv", "jsonl"), default="csv", help="output format (default csv)")

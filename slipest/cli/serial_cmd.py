@@ -13,16 +13,14 @@ from __future__ import annotations
 
 import argparse
 
+from slipest.cli.command import add_command
+
 
 def add_parser(sub) -> None:
     from slipest.cli.live_args import add_live_arguments
 
-    p = sub.add_parser(
-        "serial",
-        help="estimate slip live from a serial port (binary frames; e.g. firmware-sim serial)",
-        description=__doc__.split("\n\n", 1)[1],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    p = add_command(sub, "serial",
+                    "estimate slip live from a serial port (binary frames; e.g. firmware-sim serial)", __doc__)
     add_live_arguments(p, "PORT")
     p.add_argument("port", metavar="PORT", help="serial port or pyserial URL, e.g. /dev/ttyUSB0, /dev/pts/3")
     p.add_argument("--baudrate", type=int, default=921600, help="baud rate (default 921600; ignored by ptys)")

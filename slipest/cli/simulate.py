@@ -1,4 +1,10 @@
-"""``slipest simulate``: write a simulated IMU + encoder log (CSV) from options or a scenario file."""
+"""``slipest simulate``: write a simulated IMU + encoder log (CSV) from options or a scenario file.
+
+Simulate leg cycles of a wheel-leg with the stick-slip model and write the
+IMU/encoder stream as a log CSV (the format `slipest replay` reads). Either
+give one slip, soil and leg speed with the options, or a TOML scenario with
+segments of different slip, soil and leg speed.
+"""
 
 from __future__ import annotations
 
@@ -7,18 +13,13 @@ import os
 import sys
 import tomllib
 
+from slipest.cli.command import add_command
 from slipest.model.params import StickSlipParams
 from slipest.model.scenario import Scenario
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser(
-        "simulate",
-        help="write a simulated log (t, az, theta, slip) from the stick-slip model",
-        description="Simulate leg cycles of a wheel-leg with the stick-slip model and write the IMU/encoder "
-        "stream as a log CSV (the format `slipest replay` reads). Either give one slip and soil with the "
-        "options, or a TOML scenario with segments of different slip and soil.",
-    )
+    p = add_command(sub, "simulate", "write a simulated log (t, az, theta, slip) from the stick-slip model", __doc__)
     add_scenario_arguments(p)
     p.add_argument("-o", "--output", default="-", help="output CSV file ('-' or omitted: stdout)")
     p.set_defaults(func=run)

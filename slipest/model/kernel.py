@@ -167,26 +167,17 @@ def _record(rec, n, th, az, stick, contact, fn, fe, fs, zh, xh, xc, vc):
             r[CH_STICK] = 1.0 if stick else 0.0
             r[CH_CONTACT] = 1.0 if contact else 0.0
         if n_ch > CH_FN:
-            r[CH_FN] = fn
-            r[CH_FE] = fe
-            r[CH_FS] = fs
-            r[CH_ZH] = zh
-            r[CH_XH] = xh
-            r[CH_XC] = xc
-            r[CH_VC] = vc
+            state = (fn, fe, fs, zh, xh, xc, vc)  # channels CH_FN .. CH_VC, in this order
+            for j in range(len(state)):
+                r[CH_FN + j] = state[j]
 
 
 @numba.njit(**_INLINE)
 def _write_results(res, az_max, az_min, breakaway, n_break, n_loss, status, status_th, n):
     """The per-element results row (see ``R_*``)."""
-    res[R_AZ_MAX] = az_max
-    res[R_AZ_MIN] = az_min
-    res[R_BREAKAWAY] = breakaway
-    res[R_N_BREAKAWAY] = n_break
-    res[R_N_CONTACT_LOSS] = n_loss
-    res[R_STATUS] = status
-    res[R_STATUS_THETA] = status_th
-    res[R_N_STEPS] = n
+    row = (az_max, az_min, breakaway, float(n_break), float(n_loss), float(status), status_th, float(n))  # R_* order
+    for j in range(N_RESULTS):
+        res[j] = row[j]
 
 
 @numba.njit(cache=True, error_model="numpy")
