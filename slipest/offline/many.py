@@ -16,7 +16,8 @@ that returns the log's table rows and reports its own errors in them, e.g.
 
 Progress goes to a tqdm bar on stderr.  A log whose worker fails anyway (a
 worker process that died, a task the cluster lost) gets an error row with
-what happened; the other logs go on.  The rows come back in the order of
+what happened; the other logs go on (a dead process takes the logs it was
+given with it: they are run again, one process each).  The rows come back in the order of
 the logs.  :func:`write_table` writes them as CSV or JSON lines.
 """
 
@@ -28,6 +29,7 @@ import multiprocessing
 import os
 import sys
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from typing import Callable, Sequence
 
 from slipest.extras import import_extra
@@ -62,19 +64,20 @@ def _bar(total: int, desc: str, progress: bool):
 
 
 def run_many(worker: Callable, logs: Sequence[str], options, *, columns: Sequence[str], jobs: int | None = None,
-             scheduler: str | None = None, progress: bool = True, desc: str = "logs") -> list[dict]:
+             scheduler: str | None = None, progress: bool = True, desc: str = "logs",
+             connect_timeout: float = 10.0) -> list[dict]:
     """``worker(log, options)`` for every log (see the module docstring); the rows, in log order.
 
     ``columns``: the table's columns (for the rows of logs whose worker failed).  ``jobs``: worker
     processes (None: the machine's cores, at most one per log).  ``scheduler``: a Dask scheduler's
     address (then ``jobs`` is ignored); :class:`~slipest.extras.MissingExtra` without dask.distributed,
-    ``OSError`` when the scheduler cannot be reached."""
+    ``OSError`` when the scheduler cannot be reached within ``connect_timeout`` seconds."""
     logs = [str(log) for log in logs]
     results: list[list[dict] | None] = [None] * len(logs)
     if not logs:
         return []
     if scheduler:
-        _run_dask(worker, logs, options, columns, scheduler, progress, desc, results)
+        _run_dask(worker, logs, options, columns, scheduler, progress, desc, results, connect_timeout)
     else:
         jobs = min(jobs or os.cpu_count() or 1, len(logs))
         if jobs <= 1:
@@ -86,25 +89,49 @@ def run_many(worker: Callable, logs: Sequence[str], options, *, columns: Sequenc
                         results[i] = [_error_row(log, exc, columns)]
                     bar.update()
         else:
-            threads = max(1, (os.cpu_count() or 1) // jobs)
-            with ProcessPoolExecutor(max_workers=jobs, mp_context=_context(), initializer=_share_cores,
-                                     initargs=(threads,)) as pool:
-                futures = {pool.submit(worker, log, options): i for i, log in enumerate(logs)}
-                with _bar(len(logs), desc, progress) as bar:
-                    for fut in as_completed(futures):
-                        i = futures[fut]
-                        try:
-                            results[i] = fut.result()
-                        except Exception as exc:  # e.g. BrokenProcessPool: the worker process died
-                            results[i] = [_error_row(logs[i], exc, columns)]
-                        bar.update()
+            _run_pool(worker, logs, options, columns, jobs, progress, desc, results)
     return [row for rows in results for row in rows]
 
 
-def _run_dask(worker, logs, options, columns, scheduler, progress, desc, results) -> None:
+def _pool(jobs: int) -> ProcessPoolExecutor:
+    threads = max(1, (os.cpu_count() or 1) // jobs)
+    return ProcessPoolExecutor(max_workers=jobs, mp_context=_context(), initializer=_share_cores, initargs=(threads,))
+
+
+def _run_pool(worker, logs, options, columns, jobs, progress, desc, results) -> None:
+    """The logs in ``jobs`` worker processes.  A worker process that dies (a crash in compiled code, the
+    out-of-memory killer) breaks the pool and every log still in it; those logs are then run again,
+    each in a process of its own, so that only the one that kills its process gets an error row."""
+    broken = []
+    with _bar(len(logs), desc, progress) as bar:
+        with _pool(jobs) as pool:
+            futures = {pool.submit(worker, log, options): i for i, log in enumerate(logs)}
+            for fut in as_completed(futures):
+                i = futures[fut]
+                try:
+                    results[i] = fut.result()
+                except BrokenProcessPool:
+                    broken.append(i)
+                    continue
+                except Exception as exc:  # a worker that did not report its own error: its row says it
+                    results[i] = [_error_row(logs[i], exc, columns)]
+                bar.update()
+        for i in sorted(broken):
+            with _pool(1) as alone:
+                try:
+                    results[i] = alone.submit(worker, logs[i], options).result()
+                except BrokenProcessPool:
+                    results[i] = [_error_row(logs[i], RuntimeError("its worker process died (twice: once with "
+                                                                   "other logs, once alone)"), columns)]
+                except Exception as exc:
+                    results[i] = [_error_row(logs[i], exc, columns)]
+            bar.update()
+
+
+def _run_dask(worker, logs, options, columns, scheduler, progress, desc, results, connect_timeout) -> None:
     distributed = import_extra("distributed", "dask", "running on a Dask cluster")
     try:
-        client = distributed.Client(scheduler, timeout="10s")
+        client = distributed.Client(scheduler, timeout=f"{connect_timeout}s")
     except (OSError, TimeoutError) as exc:
         raise OSError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
     with client:
