@@ -217,6 +217,7 @@ def test_without_rosbags_a_bag_names_the_extra(drive, tmp_path):
 
 
 def test_replay_plot_shows_slip_band_reference_dphi_soil_and_flagged_cycles(two_wheels, tmp_path, capsys):
+    pytest.importorskip("matplotlib")
     from slipest.offline.replay import Replay, ReplayOptions
     from slipest.offline.replay_plot import plt, replay_figure
 

@@ -35,7 +35,7 @@ logs replayed in parallel processes (--jobs) or on a Dask cluster
 Examples::
 
     slipest replay drive.blf --truth --plot drive.png
-    slipest replay run.bag --joint wheel_leg_joint --imu-topic /hub/imu
+    slipest replay drive_bag/ --joint wheel_leg_joint --imu-topic /hub/imu --slip-topic /slip
     slipest replay drives/ -o table.csv --jobs 8
 """
 
@@ -167,7 +167,7 @@ def _replay_one(args, source, name: str) -> int:
         options = options_from_args(args)
         if args.plot:
             from slipest.offline import replay_plot as plot  # before reading: a missing matplotlib fails at once
-        replay = Replay(source, options)
+        replay = Replay(source, options, name=name)
     except FileNotFoundError:
         return _fail(f"{name}: no such file")
     except MissingExtra as exc:

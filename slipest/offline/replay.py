@@ -271,7 +271,9 @@ def error_row(log: str, error: str, kind: str = "", seconds: float = math.nan, v
 
 
 class Replay:
-    """One log opened for replay (see the module docstring); a context manager.
+    """One log opened for replay (see the module docstring); a context manager.  ``log``: a path, a
+    bag directory, or a binary stream of a slipest CSV; ``name``: how the summary names it (default:
+    the path, or the stream's name).
 
     Raises on opening: ``FileNotFoundError``/``OSError``,
     :class:`~slipest.io.log_csv.LogFormatError` (not a log of its kind, a
@@ -280,10 +282,11 @@ class Replay:
     it), :class:`~slipest.extras.MissingExtra` (a bag without ``rosbags``).
     """
 
-    def __init__(self, log, options: ReplayOptions = ReplayOptions()):
+    def __init__(self, log, options: ReplayOptions = ReplayOptions(), *, name: str | None = None):
         self.options = o = options
-        self.source_name = "-" if log is None else (os.fsdecode(log) if isinstance(log, (str, bytes, os.PathLike))
-                                                    else str(getattr(log, "name", "<stream>")))
+        if name is None:
+            name = os.fsdecode(log) if isinstance(log, (str, bytes, os.PathLike)) else str(getattr(log, "name", "-"))
+        self.source_name = name
         kind = detect_kind(log) if o.log_format == "auto" else o.log_format
         if kind not in KINDS:
             raise ValueError(f"unknown log format {kind!r} (known: auto, {', '.join(KINDS)})")
