@@ -31,10 +31,6 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
@@ -44,6 +40,9 @@ from slipest.json_files import json_number  # noqa: E402
 from slipest.model import kernel as K  # noqa: E402
 from slipest.model.params import StickSlipParams, param_grid, param_matrix  # noqa: E402
 from slipest.model.stance import DEFAULT_DT, simulate_batch, status_text  # noqa: E402
+from slipest.plotting import pyplot  # noqa: E402  (matplotlib: pip install 'slipest[plot]')
+
+plt = pyplot()
 
 PACKAGE_JSON = Path(__file__).resolve().parents[1] / "slipest" / "data" / "calibration.json"
 

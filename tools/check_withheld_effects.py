@@ -48,12 +48,9 @@ import os
 import sys
 import time
 
-import matplotlib
 import numpy as np
 from scipy import signal
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from slipest.diagnosis.cycles import cut_cycles  # noqa: E402
@@ -63,6 +60,9 @@ from slipest.diagnosis.synth import da_change, simulate_run  # noqa: E402
 from slipest.model.effects import EFFECTS, ORDER  # noqa: E402
 from slipest.model.params import StickSlipParams  # noqa: E402
 from slipest.model.scenario import Scenario  # noqa: E402
+from slipest.plotting import pyplot  # noqa: E402  (matplotlib: pip install 'slipest[plot]')
+
+plt = pyplot()
 
 LEVELS = np.round(np.linspace(0.05, 0.5, 10), 3)
 CYCLES_PER_LEVEL = 5

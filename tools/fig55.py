@@ -22,14 +22,13 @@ import math
 import sys
 from pathlib import Path
 
-import matplotlib
 import numpy as np
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
 
 from slipest.model.params import StickSlipParams  # noqa: E402
 from slipest.model.stance import DEFAULT_DT, simulate_stance  # noqa: E402
+from slipest.plotting import pyplot  # noqa: E402  (matplotlib: pip install 'slipest[plot]')
+
+plt = pyplot()
 
 #: (panel title, [(legend label, parameter changes, reference Da [g], reference break-away theta [rad])])
 #: Reference values: shared/spec/stickslip-model.md section 4.

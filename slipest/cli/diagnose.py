@@ -10,6 +10,13 @@ from the logs' metadata when present (options override); the soil, ``kappa``
 and any effect are never read from the metadata. The gap is the RMS
 difference of phase-binned az waveforms in excess of the noise floor [g]
 (see slipest.diagnosis.rank).
+
+Many drives: --per-log diagnoses each log on its own (a folder: its *.csv
+logs, recursively) and writes one table, a row per log (cycles, mean slip,
+fitted soil, gaps, verdict, error), in parallel processes (--jobs) or on a
+Dask cluster (--scheduler, pip install 'slipest[dask]'); exit status 1 when
+a log failed (its row says why). --plots needs matplotlib (pip install
+'slipest[plot]').
 """
 
 from __future__ import annotations
@@ -24,9 +31,10 @@ from slipest.cli.command import add_command
 def add_parser(sub) -> None:
     p = add_command(sub, "diagnose", "explain the gap between real logs and the model with the sim-to-real effect "
                     "catalog", __doc__)
-    p.add_argument("logs", nargs="+", metavar="LOG.csv", help="log files (t, az, theta, slip)")
+    p.add_argument("logs", nargs="+", metavar="LOG.csv", help="log files (t, az, theta, slip), or folders with --per-log")
     p.add_argument("--json", metavar="FILE", help="write the report as JSON (keys verdict, gap_nominal, where, ranking, ...)")
-    p.add_argument("--plots", metavar="DIR", help="write PNG plots (waveforms, gap by angle, ranking) into DIR")
+    p.add_argument("--plots", metavar="DIR", help="write PNG plots (waveforms, gap by angle, ranking) into DIR "
+                   "(pip install 'slipest[plot]')")
     p.add_argument("--effects", metavar="NAME,...", help="catalog effects to try (default: all)")
     p.add_argument("--rank-all", action="store_true",
                    help="fit every effect even when the nominal model already explains the data")
@@ -37,87 +45,69 @@ def add_parser(sub) -> None:
     p.add_argument("--mF", type=float, default=None, help="foot mass [kg] (default: metadata, else 0.2)")
     p.add_argument("--lS", type=float, default=None, help="spoke length [m] (default: metadata, else 0.1763)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    m = p.add_argument_group("many logs")
+    m.add_argument("--per-log", action="store_true", help="diagnose each log on its own and write one table")
+    m.add_argument("-o", "--output", default="-", help="the --per-log table (default: stdout)")
+    m.add_argument("--format", choices=("csv", "jsonl"), default="csv", help="the --per-log table's format")
+    m.add_argument("--jobs", type=int, default=None, metavar="N", help="worker processes (default: one per core)")
+    m.add_argument("--scheduler", metavar="ADDRESS",
+                   help="run on this Dask cluster (e.g. tcp://10.0.0.5:8786; pip install 'slipest[dask]')")
     p.set_defaults(func=run)
 
 
-def _geometry(args, metas):
-    from slipest.diagnosis.fit import Geometry
-
-    default = Geometry()
-
-    def pick(opt, key, conv, fallback):
-        if getattr(args, opt) is not None:
-            return conv(getattr(args, opt))
-        values = {conv(m[key]) for m in metas if key in m}
-        if len(values) > 1:
-            raise SystemExit(f"slipest diagnose: the logs disagree on {key} ({sorted(values)}); give --{opt}")
-        return values.pop() if values else fallback
-
-    return Geometry(
-        MH=pick("MH", "MH", float, default.MH),
-        mF=pick("mF", "mF", float, default.mF),
-        lS=pick("lS", "lS", float, default.lS),
-        nL=pick("legs", "nL", int, default.nL),
-        g=default.g,
-    )
+def _fail(msg: str):
+    raise SystemExit(f"slipest diagnose: {msg}")
 
 
-def run(args: argparse.Namespace) -> int:
-    from slipest.diagnosis import report
-    from slipest.diagnosis.cycles import concat, cut_cycles
-    from slipest.diagnosis.fit import FitBudget
-    from slipest.diagnosis.predict import Grid
-    from slipest.diagnosis.run import diagnose
-    from slipest.io.log_csv import LogFormatError, read_log
-    from slipest.model.effects import ORDER
+def options_from_args(args):
+    from slipest.offline.diagnose import DiagnoseOptions
 
     effects = None
     if args.effects:
-        effects = [e.strip() for e in args.effects.split(",") if e.strip()]
-        bad = [e for e in effects if e not in ORDER]
-        if bad:
-            raise SystemExit(f"slipest diagnose: unknown effect(s) {', '.join(bad)}; known: {', '.join(ORDER)}")
-    logs = []
-    for path in args.logs:
-        try:
-            logs.append(read_log(path))
-        except LogFormatError as exc:
-            raise SystemExit(f"slipest diagnose: {exc}") from None
-        except OSError as exc:
-            raise SystemExit(f"slipest diagnose: cannot read {path}: {exc.strerror}") from None
-    geometry = _geometry(args, [log.metadata for log in logs])
-    grid = Grid(geometry.nL)
-    sets = []
-    for k, (path, log) in enumerate(zip(args.logs, logs)):
-        if log.slip is None:
-            raise SystemExit(f"slipest diagnose: {path} has no 'slip' column (the diagnosis needs the imposed slip)")
-        try:
-            sets.append(cut_cycles(log.t, log.az, log.theta, log.slip, geometry.nL, grid=grid, log_index=k))
-        except ValueError as exc:
-            raise SystemExit(f"slipest diagnose: {path}: {exc}") from None
-    cycles = concat(sets)
-    budget = FitBudget().scaled(0.5) if args.quick else FitBudget()
+        effects = tuple(e.strip() for e in args.effects.split(",") if e.strip())
+    return DiagnoseOptions(effects=effects, rank_all=args.rank_all, quick=args.quick, seed=args.seed, legs=args.legs,
+                           MH=args.MH, mF=args.mF, lS=args.lS)
 
-    bar = None
-    progress = None
-    if not args.no_progress:
-        from tqdm import tqdm
 
-        bar = tqdm(total=1, desc="diagnose", unit="gen", file=sys.stderr, leave=False, mininterval=0.5)
-        last = {"label": None}
+def _progress_bar(args):
+    """A tqdm bar and the diagnosis's progress callback for it (None, None with --no-progress)."""
+    if args.no_progress:
+        return None, None
+    from tqdm import tqdm
 
-        def progress(done, total, label):
-            bar.total = total
-            if label != last["label"]:
-                last["label"] = label
-                bar.set_description(f"fitting {label}", refresh=False)
-            bar.update(done - bar.n)
+    bar = tqdm(total=1, desc="diagnose", unit="gen", file=sys.stderr, leave=False, mininterval=0.5)
+    last = {"label": None}
 
+    def progress(done, total, label):
+        bar.total = total
+        if label != last["label"]:
+            last["label"] = label
+            bar.set_description(f"fitting {label}", refresh=False)
+        bar.update(done - bar.n)
+
+    return bar, progress
+
+
+def run(args: argparse.Namespace) -> int:
+    from slipest.extras import MissingExtra
+
+    options = options_from_args(args)
     try:
-        diag = diagnose(cycles, geometry, effects, seed=args.seed, budget=budget, rank_all=args.rank_all,
-                        progress=progress)
-    except ValueError as exc:
-        raise SystemExit(f"slipest diagnose: {exc}") from None
+        options.checked_effects()
+        if args.plots:
+            from slipest.diagnosis import plots  # before the long fit: a missing matplotlib fails at once
+    except (ValueError, MissingExtra) as exc:
+        _fail(str(exc))
+    if args.per_log:
+        return _per_log(args, options)
+    from slipest.diagnosis import report
+    from slipest.offline.diagnose import diagnose_logs
+
+    bar, progress = _progress_bar(args)
+    try:
+        diag = diagnose_logs(args.logs, options, progress=progress)
+    except (ValueError, OSError) as exc:  # LogFormatError is a ValueError; both name the file
+        _fail(str(exc))
     finally:
         if bar is not None:
             bar.close()
@@ -128,8 +118,32 @@ def run(args: argparse.Namespace) -> int:
             json.dump(doc, fh, indent=2)
         print(f"wrote {args.json}", file=sys.stderr)
     if args.plots:
-        from slipest.diagnosis import plots
-
         for path in plots.write_all(diag, args.plots):
             print(f"wrote {path}", file=sys.stderr)
     return 0
+
+
+def _per_log(args, options) -> int:
+    from slipest.extras import MissingExtra
+    from slipest.offline.diagnose import DIAGNOSE_COLUMNS, diagnose_rows
+    from slipest.offline.logs import expand_logs
+    from slipest.offline.many import run_many, save_table
+
+    if args.json or args.plots:
+        _fail("--json and --plots report one diagnosis: not with --per-log")
+    logs = expand_logs(args.logs, kinds=("slipest",))
+    if not logs:
+        _fail(f"no log found in {', '.join(args.logs)}")
+    try:
+        rows = run_many(diagnose_rows, logs, options, columns=DIAGNOSE_COLUMNS, jobs=args.jobs,
+                        scheduler=args.scheduler, progress=not args.no_progress, desc="diagnose")
+    except (MissingExtra, OSError, ValueError) as exc:
+        _fail(str(exc))
+    save_table(rows, DIAGNOSE_COLUMNS, args.output, args.format)
+    failed = [r["log"] for r in rows if r["verdict"] == "error"]
+    verdicts = {}
+    for r in rows:
+        verdicts[r["verdict"]] = verdicts.get(r["verdict"], 0) + 1
+    print(f"diagnose: {len(rows)} logs: " + ", ".join(f"{v} {n}" for v, n in sorted(verdicts.items()))
+          + ("" if args.output == "-" else f"; table in {args.output}"), file=sys.stderr)
+    return 1 if failed else 0

@@ -1,18 +1,42 @@
-"""``slipest replay``: run the slip estimator over a logged CSV, one output row per leg cycle.
+"""``slipest replay``: run the slip estimator over recorded logs, one output row per leg cycle.
 
-Run the online slip estimator over a log (columns t, az, theta, optional
-slip; '# key=value' metadata such as '# nL=4') and write one row per leg
-cycle, to stdout (or -o FILE) as CSV (default) or JSON lines: the fields of
-slipest.online.Estimate. Units: t [s], delta_a [g], slip [-], dphi, phiS
-[rad], kS [N/m]. A cycle that cannot be estimated has NaN values and its
-quality says why. A summary (samples, skipped rows, cycles estimated and
-flagged, and with --truth the errors against the log's slip column) goes to
-stderr, so stdout stays machine-readable. The log is read in bounded-memory
-chunks.
+Run the online slip estimator over what a rover recorded and write one row
+per leg cycle, to stdout (or -o FILE) as CSV (default) or JSON lines: the
+fields of slipest.online.Estimate. Units: t [s], delta_a [g], slip [-],
+dphi, phiS [rad], kS [N/m]. A cycle that cannot be estimated has NaN values
+and its quality says why. A summary (samples, skipped rows, cycles estimated
+and flagged, and with --truth the errors against the log's reference slip)
+goes to stderr, so stdout stays machine-readable. Logs are read in
+bounded-memory chunks. Kinds of log (found from the name, --log-format to
+say it):
 
-The ``slip`` column is ignored by the estimator unless ``--use-reference``
-is given, so a log with the truth in it is still a blind test; ``--truth``
-only compares.
+  slipest CSV  columns t, az, theta, optional slip; '# key=value' metadata
+               such as '# nL=4'
+  CAN log      python-can's formats (.asc, .blf, .log from candump -l,
+               .trc, .csv, .db, .mf4, also gzipped): decoded with the
+               shipped DBC, every wheel estimated through the live
+               runtime's own path, so the rows are those `slipest can`
+               printed on the same frames (with a leading wheel column)
+  ROS 2 bag    a rosbag2 directory, .mcap or .db3 (pip install
+               'slipest[ros]'): sensor_msgs/Imu z acceleration, the
+               wheel-leg joint's angle from sensor_msgs/JointState
+               interpolated onto the IMU times
+
+The reference slip (slip column, SlipReference messages, --slip-topic) is
+ignored by the estimator unless --use-reference is given, so a log with the
+truth in it is still a blind test; --truth only compares.
+
+Several logs or a folder: one summary table instead (per log and wheel:
+cycles, estimated, mean slip, the soil at the end, verdict, error), the
+logs replayed in parallel processes (--jobs) or on a Dask cluster
+(--scheduler, pip install 'slipest[dask]'). Exit status 1 when a log failed
+(its row says why), 2 on a bad single log or option.
+
+Examples::
+
+    slipest replay drive.blf --truth --plot drive.png
+    slipest replay drive_bag/ --joint wheel_leg_joint --imu-topic /hub/imu --slip-topic /slip
+    slipest replay drives/ -o table.csv --jobs 8
 """
 
 from __future__ import annotations
@@ -20,35 +44,76 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
-
-import numpy as np
 
 from slipest.cli import estimate_output
 from slipest.cli.command import add_command
-from slipest.cli.estimator_args import add_estimator_arguments, model_from_args, soil_from_args
-from slipest.io.log_csv import LogFormatError, LogReader
-from slipest.online import ESTIMATE_FIELDS, SlipEstimator
+from slipest.cli.estimator_args import add_estimator_arguments, soil_from_args
+from slipest.online import ESTIMATE_FIELDS
 
-#: Output columns, in order.
+#: Output columns, in order (a CAN log's rows have ``wheel`` first).
 COLUMNS = ESTIMATE_FIELDS
 
 
 def add_parser(sub) -> None:
-    p = add_command(sub, "replay", "estimate slip (and soil) per leg cycle from a logged CSV", __doc__)
-    p.add_argument("log", metavar="LOG.csv", help="the log to replay ('-': stdin)")
+    from slipest.offline.logs import KINDS
+
+    p = add_command(sub, "replay", "estimate slip (and soil) per leg cycle from recorded logs (slipest CSV, "
+                    "CAN logs, ROS 2 bags)", __doc__)
+    p.add_argument("logs", nargs="+", metavar="LOG",
+                   help="log file, bag or folder ('-': a slipest CSV on stdin); several, or a folder: a table")
     p.add_argument("-o", "--output", default="-", help="output file ('-' or omitted: stdout)")
     p.add_argument("--format", choices=("csv", "jsonl"), default="csv", help="output format (default csv)")
+    p.add_argument("--log-format", choices=("auto",) + KINDS, default="auto",
+                   help="what the log is (default: from its name; a .csv by its header)")
     p.add_argument("--legs", type=int, default=None, help="legs of the wheel-leg (default: the log's nL, else 4)")
     add_estimator_arguments(p)
     p.add_argument("--truth", action="store_true",
-                   help="summarise the errors against the log's slip column (RMSE, bias, 95%% coverage)")
+                   help="summarise the errors against the log's reference slip (RMSE, bias, 95%% coverage)")
     p.add_argument("--use-reference", action="store_true",
-                   help="let the estimator learn the soil from the log's slip column (default: ignored)")
+                   help="let the estimator learn the soil from the log's reference slip (default: ignored)")
     p.add_argument("--skip-bad", action="store_true",
-                   help="count and skip malformed rows (default: stop with an error naming the line)")
+                   help="count and skip malformed CSV rows (default: stop with an error naming the line)")
+    p.add_argument("--plot", metavar="FILE.png",
+                   help="draw slip (95%% band, reference), dphi and the soil over time, flagged cycles marked "
+                   "(pip install 'slipest[plot]')")
     p.add_argument("--chunk-rows", type=int, default=65536, help=argparse.SUPPRESS)
+    c = p.add_argument_group("CAN logs")
+    c.add_argument("--wheel", type=int, action="append", default=None, metavar="W",
+                   help="estimate only this wheel (repeat for several; default: every wheel in the log)")
+    c.add_argument("--stuck-samples", type=int, default=50, metavar="N",
+                   help="az repeated bit-identically N times is a stuck sensor (0: never; default 50)")
+    r = p.add_argument_group("ROS 2 bags")
+    r.add_argument("--imu-topic", default="/imu", help="sensor_msgs/msg/Imu topic (default /imu)")
+    r.add_argument("--joint-states-topic", default="/joint_states",
+                   help="sensor_msgs/msg/JointState topic (default /joint_states)")
+    r.add_argument("--joint", default=None, help="the wheel-leg joint's name (default: the only joint there)")
+    r.add_argument("--slip-topic", default=None, help="std_msgs/msg/Float64 reference slip topic (default: none)")
+    r.add_argument("--bag-time", action="store_true",
+                   help="time the samples by the bag's receive times, not the header stamps")
+    r.add_argument("--max-joint-gap", type=float, default=None, metavar="S",
+                   help="longest joint-state step interpolated over [s] (default: 5 median steps)")
+    m = p.add_argument_group("many logs")
+    m.add_argument("--jobs", type=int, default=None, metavar="N",
+                   help="worker processes (default: one per core)")
+    m.add_argument("--scheduler", metavar="ADDRESS",
+                   help="run on this Dask cluster (e.g. tcp://10.0.0.5:8786; pip install 'slipest[dask]')")
+    m.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.set_defaults(func=run)
+
+
+def options_from_args(args):
+    from slipest.io.rosbag import BagTopics
+    from slipest.offline.replay import ReplayOptions
+
+    bag = BagTopics(imu=args.imu_topic, joint_states=args.joint_states_topic, joint=args.joint, slip=args.slip_topic,
+                    bag_time=args.bag_time, max_joint_gap=args.max_joint_gap)
+    return ReplayOptions(legs=args.legs, method=args.method, soil=soil_from_args(args) or None, model=args.model,
+                         use_reference=args.use_reference, truth=args.truth, carry_reference=bool(args.plot),
+                         skip_bad=args.skip_bad, log_format=args.log_format,
+                         wheels=tuple(args.wheel) if args.wheel else None, stuck_samples=args.stuck_samples, bag=bag,
+                         chunk_rows=args.chunk_rows)
 
 
 def _json_value(v):
@@ -58,135 +123,108 @@ def _json_value(v):
 
 
 class _Writer:
-    def __init__(self, stream, fmt: str):
+    """Estimate rows as CSV or JSON lines; ``wheel_column``: a leading ``wheel`` (CAN logs)."""
+
+    def __init__(self, stream, fmt: str, wheel_column: bool):
         self.stream = stream
         self.fmt = fmt
+        self.prefix = ("wheel",) if wheel_column else ()
         if fmt == "csv":
-            stream.write(estimate_output.header() + "\n")
+            stream.write(estimate_output.header(self.prefix) + "\n")
 
-    def write(self, estimates) -> None:
-        if not estimates:
-            return
+    def write(self, wheel, e) -> None:
         if self.fmt == "csv":
-            self.stream.write("".join(estimate_output.row(e) + "\n" for e in estimates))
+            self.stream.write(estimate_output.row(e, (wheel,) if self.prefix else ()) + "\n")
         else:
-            self.stream.write("".join(
-                json.dumps({c: _json_value(getattr(e, c)) for c in COLUMNS}, allow_nan=False) + "\n" for e in estimates))
+            rec = {"wheel": wheel} if self.prefix else {}
+            rec.update((c, _json_value(getattr(e, c))) for c in COLUMNS)
+            self.stream.write(json.dumps(rec, allow_nan=False) + "\n")
 
 
-class TruthSummary:
-    """Errors of the slip estimates against the reference slip carried on each estimate."""
-
-    def __init__(self, dphi_true: float | None = None):
-        self.err = []
-        self.std = []
-        self.derr = []
-        self.dstd = []
-        self.no_truth = 0
-        self.dphi_true = dphi_true
-
-    def add(self, estimates) -> None:
-        for e in estimates:
-            if not e.ok:
-                continue
-            if math.isfinite(e.slip_ref):
-                self.err.append(e.slip - e.slip_ref)
-                self.std.append(e.slip_std)
-            else:
-                self.no_truth += 1
-            if self.dphi_true is not None and math.isfinite(e.dphi):
-                self.derr.append(e.dphi - self.dphi_true)
-                self.dstd.append(e.dphi_std)
-
-    @staticmethod
-    def _figs(err, std) -> str:
-        e = np.asarray(err)
-        s = np.asarray(std)
-        rmse = float(np.sqrt(np.mean(e**2)))
-        cov = float(np.mean(np.abs(e) <= 1.96 * s))
-        return f"RMSE {rmse:.4f}, bias {float(np.mean(e)):+.4f}, 95% interval coverage {cov:.3f} ({e.size} cycles)"
-
-    def lines(self) -> list:
-        out = []
-        if self.err:
-            out.append("truth: slip " + self._figs(self.err, self.std))
-        else:
-            out.append("truth: no cycle had both an estimate and a reference slip")
-        if self.no_truth:
-            out.append(f"truth: {self.no_truth} estimated cycle(s) had no reference slip")
-        if self.derr:
-            out.append(f"truth: dphi (log metadata {self.dphi_true:g} rad) " + self._figs(self.derr, self.dstd))
-        return out
-
-
-def _metadata_dphi(meta):
-    try:
-        phiS, phiD = meta.get_float("phiS"), meta.get_float("phiD")
-    except LogFormatError:
-        return None  # e.g. "varies"
-    return None if phiS is None or phiD is None else phiS - phiD
+def _fail(msg: str) -> int:
+    print(f"slipest replay: {msg}", file=sys.stderr)
+    return 2
 
 
 def run(args: argparse.Namespace) -> int:
-    def fail(msg: str) -> int:
-        print(f"slipest replay: {msg}", file=sys.stderr)
-        return 2
+    from slipest.io.rosbag import is_bag
+    from slipest.offline.logs import expand_logs
 
-    soil = soil_from_args(args)
-    source = sys.stdin.buffer if args.log == "-" else args.log
+    if args.logs == ["-"]:
+        return _replay_one(args, sys.stdin.buffer, "-")
+    (first, *more) = args.logs
+    if not more and (not os.path.isdir(first) or is_bag(first)):
+        return _replay_one(args, first, first)
+    return _replay_many(args, expand_logs(args.logs))
+
+
+def _replay_one(args, source, name: str) -> int:
+    from slipest.extras import MissingExtra
+    from slipest.io.log_csv import LogFormatError
+    from slipest.offline.replay import Replay
+
     try:
-        reader = LogReader(source, skip_bad=args.skip_bad)
+        options = options_from_args(args)
+        if args.plot:
+            from slipest.offline import replay_plot as plot  # before reading: a missing matplotlib fails at once
+        replay = Replay(source, options, name=name)
     except FileNotFoundError:
-        return fail(f"{args.log}: no such file")
+        return _fail(f"{name}: no such file")
+    except MissingExtra as exc:
+        return _fail(str(exc))
     except OSError as exc:
-        return fail(f"{args.log}: {exc.strerror or exc}")
-    except LogFormatError as exc:
-        return fail(str(exc))
+        return _fail(f"{name}: {exc.strerror or exc}")
+    except (ValueError, TypeError) as exc:  # LogFormatError, InverseModelError (naming the file), option errors
+        return _fail(str(exc))
+    series: dict = {}
+
+    def on_estimate(wheel, e):
+        writer.write(wheel, e)
+        if args.plot:
+            series.setdefault(wheel, []).append(e)
+
     out = None
     try:
-        legs = args.legs if args.legs is not None else (reader.metadata.n_legs or 4)
-        if (args.truth or args.use_reference) and not reader.has_slip:
-            return fail(f"{args.log}: --truth and --use-reference need a 'slip' column, the log has none")
-        try:
-            model = model_from_args(args)
-            est = SlipEstimator(n_legs=legs, method=args.method, soil=soil or None, use_reference=args.use_reference,
-                                model=model)
-        except (ValueError, TypeError) as exc:  # InverseModelError is a ValueError: names the file
-            return fail(str(exc))
-        truth = TruthSummary(_metadata_dphi(reader.metadata) if args.truth else None) if args.truth else None
         out = sys.stdout if args.output == "-" else open(args.output, "w", encoding="utf-8", newline="\n")
-        writer = _Writer(out, args.format)
-        pass_ref = args.truth or args.use_reference
-        for ch in reader.iter_chunks(args.chunk_rows):
-            estimates = est.push_many(ch.t, ch.az, ch.theta, ch.slip if pass_ref else None)
-            writer.write(estimates)
-            if truth is not None:
-                truth.add(estimates)
+        writer = _Writer(out, args.format, replay.kind == "can")
+        result = replay.run(on_estimate)
         out.flush()
     except LogFormatError as exc:
-        return fail(str(exc))
+        return _fail(str(exc))
     except OSError as exc:
         if isinstance(exc, BrokenPipeError):
             raise
-        return fail(f"{exc.filename or args.output}: {exc.strerror or exc}")
+        return _fail(f"{exc.filename or args.output}: {exc.strerror or exc}")
     finally:
-        reader.close()
+        replay.close()
         if out is not None and out is not sys.stdout:
             out.close()
-    c = est.counters
-    lines = [
-        f"replay: {c['samples']} samples read from {args.log}"
-        + (f", {reader.n_skipped} malformed row(s) skipped" if args.skip_bad else ""),
-        f"replay: {c['cycles']} leg cycles: {c['cycles_ok']} estimated, {c['cycles_flagged']} flagged"
-        + (" (" + ", ".join(f"{k[len('flagged_'):]} {v}" for k, v in c.items() if k.startswith("flagged_")) + ")"
-           if c["cycles_flagged"] else "")
-        + f"; method {args.method}, {legs} legs"
-        + (f", reference slip used on {c['reference_used']} cycles" if args.use_reference else ""),
-    ]
-    if args.skip_bad and reader.bad_rows:
-        first = reader.bad_rows[0]
-        lines.append(f"replay: first malformed row: line {first.line}: {first.reason}")
-    if truth is not None:
-        lines += truth.lines()
-    print("\n".join(lines), file=sys.stderr)
+    print("\n".join(result.summary_lines()), file=sys.stderr)
+    if args.plot:
+        try:
+            print(f"wrote {plot.plot_replay(args.plot, series, title=name)}", file=sys.stderr)
+        except (ValueError, OSError) as exc:
+            return _fail(f"--plot {args.plot}: {exc}")
     return 0
+
+
+def _replay_many(args, logs: list[str]) -> int:
+    from slipest.extras import MissingExtra
+    from slipest.offline.many import run_many, save_table
+    from slipest.offline.replay import TABLE_COLUMNS, replay_rows
+
+    if args.plot:
+        return _fail("--plot draws one log: give one")
+    if not logs:
+        return _fail(f"no log found in {', '.join(args.logs)}")
+    try:
+        rows = run_many(replay_rows, logs, options_from_args(args), columns=TABLE_COLUMNS, jobs=args.jobs,
+                        scheduler=args.scheduler, progress=not args.no_progress, desc="replay")
+    except (MissingExtra, OSError, ValueError) as exc:
+        return _fail(str(exc))
+    save_table(rows, TABLE_COLUMNS, args.output, args.format)
+    failed = sorted({r["log"] for r in rows if r["verdict"] == "error"})
+    print(f"replay: {len(logs)} logs, {len(rows)} rows: {sum(r['verdict'] == 'ok' for r in rows)} with estimates, "
+          f"{len(failed)} log(s) failed" + (f" (first: {failed[0]})" if failed else "")
+          + ("" if args.output == "-" else f"; table in {args.output}"), file=sys.stderr)
+    return 1 if failed else 0

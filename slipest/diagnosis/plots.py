@@ -1,4 +1,4 @@
-"""PNG plots of a diagnosis (matplotlib, Agg backend): data in, files out.
+"""PNG plots of a diagnosis (matplotlib, Agg backend; ``pip install 'slipest[plot]'``): data in, files out.
 
 * ``waveforms.png``: held-out cycles (mean per slip level) vs the nominal
   model and the best effect, specific force minus 1 g [g] vs leg phase [rad];
@@ -11,13 +11,12 @@ from __future__ import annotations
 
 import os
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+from slipest.plotting import pyplot
+from slipest.units import G
 
-from slipest.units import G  # noqa: E402
+plt = pyplot()  # matplotlib is an extra: MissingExtra names it when it is not installed
 
 
 def plot_waveforms(path, phase, panels, best_name: str | None) -> str:

@@ -34,7 +34,7 @@ from slipest.io.can_messages import (
 )
 from slipest.io.source import Source, SourceBatch
 
-__all__ = ["CanSource", "estimate_message"]
+__all__ = ["CanSource", "add_record", "estimate_message"]
 
 
 def estimate_message(wheel: int, estimate):
@@ -43,6 +43,21 @@ def estimate_message(wheel: int, estimate):
     values = [float(getattr(estimate, k, math.nan)) for k in ("slip", "slip_std", "dphi", "dphi_std")]
     code = QUALITY_OK if quality == "ok" and all(v == v for v in values) else QUALITY_INVALID
     return encode_slip_estimate(wheel, int(getattr(estimate, "cycle", 0)), *values, quality=code)
+
+
+def add_record(rec, imu: list, refs: list) -> bool:
+    """File one decoded frame where a :class:`~slipest.io.source.SourceBatch` takes it: an
+    :class:`ImuMessage` as ``(wheel, counter, time_mod, az, theta)`` in ``imu``, a valid
+    :class:`SlipReferenceMessage` as ``(wheel, counter, time_mod, slip)`` in ``refs``; anything else
+    (None, estimates) is left out.  False for a reference flagged invalid (NaN slip), for the caller
+    to count."""
+    if isinstance(rec, ImuMessage):
+        imu.append((rec.wheel, rec.counter, rec.time_mod, rec.az, rec.theta))
+    elif isinstance(rec, SlipReferenceMessage):
+        if rec.slip != rec.slip:
+            return False
+        refs.append((rec.wheel, rec.counter, rec.time_mod, rec.slip))
+    return True
 
 
 class CanSource(Source):
@@ -100,13 +115,8 @@ class CanSource(Source):
         while msg is not None:
             with self._lock:
                 rec = decode(msg)
-            if isinstance(rec, ImuMessage):
-                imu.append((rec.wheel, rec.counter, rec.time_mod, rec.az, rec.theta))
-            elif isinstance(rec, SlipReferenceMessage):
-                if rec.slip == rec.slip:
-                    refs.append((rec.wheel, rec.counter, rec.time_mod, rec.slip))
-                else:
-                    self.c["references_invalid"] += 1
+            if not add_record(rec, imu, refs):
+                self.c["references_invalid"] += 1
             n += 1
             if n >= self.max_batch:
                 break

@@ -1,0 +1,123 @@
+"""Recorded CAN traffic (python-can's log files) handed on as the live CAN source hands it on.
+
+A rover team records its bus with ``python -m can.logger`` or ``candump -l``.
+:class:`CanLogFile` reads such a file with :func:`can.LogReader` (by its
+suffix: ``.asc``, ``.blf``, ``.csv``, ``.db``, ``.log`` (candump -l),
+``.mf4`` (with asammdf), ``.trc``, and each of them gzipped, ``.asc.gz``...),
+decodes each frame with the DBC (:class:`~slipest.io.can_messages.CanDecoder`:
+unknown IDs, error frames and bad frames are counted and skipped) and yields
+:class:`~slipest.io.source.SourceBatch` es as
+:class:`~slipest.io.can_source.CanSource` does live, the frame's recorded
+timestamp standing for its arrival time (``intake``).  It declares the same
+wire facts (``seq_modulus``, ``time_unit``, ``time_modulus``), so
+:class:`slipest.live.LiveEstimation` turns a recording into samples and
+estimates with the very code that serves the bus: a replay gives the
+estimates the live run gave on the same frames.
+
+A file python-can cannot read, or a frame it cannot parse, raises
+:class:`~slipest.io.log_csv.LogFormatError` naming the file and the frame's
+1-based index.  Memory: one batch at a time (``batch_frames`` frames).
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Iterator
+
+import can
+from can.io.player import MESSAGE_READERS
+
+from slipest.io.can_messages import COUNTER_MODULUS, TIME_MOD_PERIOD, CanDecoder
+from slipest.io.can_source import add_record
+from slipest.io.log_csv import LogFormatError
+from slipest.io.source import SourceBatch
+
+__all__ = ["CAN_LOG_SUFFIXES", "CanLogFile", "is_can_log_name"]
+
+#: Suffixes python-can reads (a ``.gz`` after one of them too); ``.csv`` is also the slipest log's.
+CAN_LOG_SUFFIXES = tuple(sorted(MESSAGE_READERS))
+
+
+def is_can_log_name(path) -> bool:
+    """Whether python-can would pick a reader for this file name (``.blf``, ``.asc.gz``...)."""
+    name = os.fspath(path).lower()
+    if name.endswith(".gz"):
+        name = name[:-3]
+    return os.path.splitext(name)[1] in MESSAGE_READERS
+
+
+class CanLogFile:
+    """A python-can log file's frames as :class:`~slipest.io.source.SourceBatch` es.
+
+    ``path``: the file (python-can picks the reader by suffix).  Iterate
+    :meth:`batches` once.  Wire facts as :class:`~slipest.io.can_source.CanSource`.
+    Counters (:meth:`counters`): ``frames`` read, the decoder's (``ok``,
+    ``unknown_id``, ``bad_frame``, ``not_data``, ``counter_gaps``...), and
+    ``references_invalid`` (SlipReference frames flagged invalid).
+    """
+
+    seq_modulus = COUNTER_MODULUS
+    time_unit = 1.0
+    time_modulus = TIME_MOD_PERIOD
+
+    def __init__(self, path, *, batch_frames: int = 4096):
+        self.path = os.fspath(path)
+        if not is_can_log_name(self.path):
+            raise LogFormatError(f"python-can reads no log with this suffix (it reads {', '.join(CAN_LOG_SUFFIXES)}, "
+                                 "also gzipped)", self.path)
+        if not os.path.isfile(self.path):
+            raise FileNotFoundError(2, "no such file", self.path)
+        self.batch_frames = max(1, int(batch_frames))
+        self.decoder = CanDecoder()
+        self.c = {"frames": 0, "references_invalid": 0}
+        self.first_timestamp: float | None = None
+
+    def describe(self) -> str:
+        return f"canlog:{self.path}"
+
+    def counters(self) -> dict:
+        c = self.decoder.counters()
+        c.pop("counter_gaps_by_wheel", None)
+        c.update(self.c)
+        return c
+
+    def _messages(self) -> Iterator[can.Message]:
+        try:
+            reader = can.LogReader(self.path)
+        except (ValueError, OSError, ImportError) as exc:
+            raise LogFormatError(f"python-can cannot open it: {exc}", self.path) from None
+        with reader:
+            it = iter(reader)
+            while True:
+                try:
+                    msg = next(it)
+                except StopIteration:
+                    return
+                except Exception as exc:  # python-can's parsers raise what they raise: name the frame
+                    raise LogFormatError(f"frame {self.c['frames'] + 1}: python-can cannot parse it "
+                                         f"({type(exc).__name__}: {exc})", self.path) from None
+                yield msg
+
+    def batches(self) -> Iterator[list[SourceBatch]]:
+        """Lists of up to ``batch_frames`` batches, one per frame of ours (in file order), each with
+        its recorded timestamp as ``intake``."""
+        decode = self.decoder.decode
+        c = self.c
+        out: list[SourceBatch] = []
+        for msg in self._messages():
+            c["frames"] += 1
+            imu: list = []
+            refs: list = []
+            if not add_record(decode(msg), imu, refs):
+                c["references_invalid"] += 1
+            if not (imu or refs):
+                continue
+            ts = float(msg.timestamp)
+            if self.first_timestamp is None:
+                self.first_timestamp = ts
+            out.append(SourceBatch(ts, imu, refs))
+            if len(out) >= self.batch_frames:
+                yield out
+                out = []
+        if out:
+            yield out

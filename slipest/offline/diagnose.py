@@ -1,0 +1,135 @@
+"""The sim-to-real diagnosis of log files: read them, cut their cycles, diagnose; or one log at a time.
+
+:func:`diagnose_logs` reads slipest log CSVs (with the ``slip`` column: the
+slip imposed and logged), takes the known hardware from their metadata
+(``nL``, ``MH``, ``mF``, ``lS``; :class:`DiagnoseOptions` overrides them;
+logs that disagree are refused), cuts and bins their cycles and runs
+:func:`slipest.diagnosis.run.diagnose` on all of them together.
+:func:`diagnose_rows` is the many-logs worker: one log diagnosed on its own,
+its row of the table (:data:`DIAGNOSE_COLUMNS`) out, any error in the row.
+
+Errors name the file: :class:`~slipest.io.log_csv.LogFormatError` (a
+malformed log), ``OSError`` (cannot read it), ``ValueError`` (no slip
+column, logs that disagree on the hardware, an unknown effect, too few
+cycles).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from slipest.io.log_csv import LogFormatError, read_log
+
+__all__ = ["DIAGNOSE_COLUMNS", "DiagnoseOptions", "diagnose_logs", "diagnose_rows", "geometry_of"]
+
+#: The many-logs table of the diagnosis, one row per log: cycles (cut, fitted, held out), the mean
+#: logged slip [-], the nominal model's fitted soil (kS [N/m], phiS, dphi [rad], kappa [-]), the held-out
+#: gap before and after the best effect [mg], the verdict (an effect, ``none``, ``unexplained``, or
+#: ``error``), the error, the seconds it took.
+DIAGNOSE_COLUMNS = ("log", "cycles", "fitted", "held_out", "mean_slip", "kS", "phiS", "dphi", "kappa",
+                    "gap_nominal_mg", "gap_after_mg", "verdict", "error", "seconds")
+
+
+@dataclass(frozen=True)
+class DiagnoseOptions:
+    """``effects``: catalog effects to try (None: all).  ``rank_all``: fit every effect even when the
+    nominal model explains the data.  ``quick``: half the optimiser budget.  ``seed``: the optimiser's.
+    ``legs``, ``MH`` [kg], ``mF`` [kg], ``lS`` [m]: the hardware (None: the logs' metadata, else the
+    defaults of :class:`~slipest.diagnosis.fit.Geometry`)."""
+
+    effects: tuple | None = None
+    rank_all: bool = False
+    quick: bool = False
+    seed: int = 0
+    legs: int | None = None
+    MH: float | None = None
+    mF: float | None = None
+    lS: float | None = None
+
+    def checked_effects(self):
+        """The effects as a list (None: all); ValueError naming unknown ones."""
+        from slipest.model.effects import ORDER
+
+        if self.effects is None:
+            return None
+        bad = [e for e in self.effects if e not in ORDER]
+        if bad:
+            raise ValueError(f"unknown effect(s) {', '.join(bad)}; known: {', '.join(ORDER)}")
+        return list(self.effects)
+
+
+def geometry_of(options: DiagnoseOptions, metas):
+    """The :class:`~slipest.diagnosis.fit.Geometry`: an option, else the logs' metadata (ValueError when
+    they disagree), else the default."""
+    from slipest.diagnosis.fit import Geometry
+
+    default = Geometry()
+
+    def pick(opt, key, conv, fallback):
+        if getattr(options, opt) is not None:
+            return conv(getattr(options, opt))
+        values = {conv(m[key]) for m in metas if key in m}
+        if len(values) > 1:
+            raise ValueError(f"the logs disagree on {key} ({sorted(values)}); give --{opt}")
+        return values.pop() if values else fallback
+
+    return Geometry(MH=pick("MH", "MH", float, default.MH), mF=pick("mF", "mF", float, default.mF),
+                    lS=pick("lS", "lS", float, default.lS), nL=pick("legs", "nL", int, default.nL), g=default.g)
+
+
+def _read(path):
+    try:
+        return read_log(path)
+    except OSError as exc:
+        raise OSError(exc.errno, f"cannot read {path}: {exc.strerror or exc}") from None
+
+
+def diagnose_logs(paths, options: DiagnoseOptions = DiagnoseOptions(), progress=None):
+    """Diagnose the logs together; returns the :class:`~slipest.diagnosis.run.Diagnosis`.
+    ``progress(done, total, label)`` as :func:`~slipest.diagnosis.run.diagnose` calls it."""
+    from slipest.diagnosis.cycles import concat, cut_cycles
+    from slipest.diagnosis.fit import FitBudget
+    from slipest.diagnosis.predict import Grid
+    from slipest.diagnosis.run import diagnose
+
+    effects = options.checked_effects()
+    paths = [str(p) for p in paths]
+    logs = [_read(p) for p in paths]
+    geometry = geometry_of(options, [log.metadata for log in logs])
+    grid = Grid(geometry.nL)
+    sets = []
+    for k, (path, log) in enumerate(zip(paths, logs)):
+        if log.slip is None:
+            raise LogFormatError("no 'slip' column (the diagnosis needs the imposed slip)", path)
+        try:
+            sets.append(cut_cycles(log.t, log.az, log.theta, log.slip, geometry.nL, grid=grid, log_index=k))
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from None
+    budget = FitBudget().scaled(0.5) if options.quick else FitBudget()
+    return diagnose(concat(sets), geometry, effects, seed=options.seed, budget=budget, rank_all=options.rank_all,
+                    progress=progress)
+
+
+def diagnose_rows(log, options: DiagnoseOptions = DiagnoseOptions()) -> list[dict]:
+    """The many-logs worker: ``log`` diagnosed on its own, its table row (:data:`DIAGNOSE_COLUMNS`);
+    an error becomes the row's ``error`` (verdict ``error``).  Picklable, for processes and Dask."""
+    t0 = time.monotonic()
+    row = dict.fromkeys(DIAGNOSE_COLUMNS, "")
+    row["log"] = str(log)
+    try:
+        d = diagnose_logs([log], options)
+    except Exception as exc:  # reported in the log's row, not swallowed
+        row.update(verdict="error", error=str(exc) if isinstance(exc, (LogFormatError, OSError))
+                   else f"{type(exc).__name__}: {exc}", seconds=time.monotonic() - t0)
+        return [row]
+    soil = d.nominal.soil()
+    row.update(cycles=len(d.cycles), fitted=len(d.split.train), held_out=len(d.split.test),
+               mean_slip=float(np.mean(d.cycles.slip)) if len(d.cycles) else math.nan,
+               kS=soil["kS"], phiS=soil["phiS"], dphi=soil["dphi"], kappa=soil["kappa"],
+               gap_nominal_mg=d.gap_nominal * 1000, gap_after_mg=d.gap_after * 1000, verdict=d.verdict,
+               seconds=time.monotonic() - t0)
+    return [row]
