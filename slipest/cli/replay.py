@@ -18,7 +18,6 @@ only compares.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 
@@ -51,12 +50,6 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _json_value(v):
-    if isinstance(v, float) and not math.isfinite(v):
-        return None
-    return v
-
-
 class _Writer:
     def __init__(self, stream, fmt: str):
         self.stream = stream
@@ -70,8 +63,7 @@ class _Writer:
         if self.fmt == "csv":
             self.stream.write("".join(estimate_output.row(e) + "\n" for e in estimates))
         else:
-            self.stream.write("".join(
-                json.dumps({c: _json_value(getattr(e, c)) for c in COLUMNS}, allow_nan=False) + "\n" for e in estimates))
+            self.stream.write("".join(estimate_output.json_row(e) + "\n" for e in estimates))
 
 
 class TruthSummary:
