@@ -1,10 +1,11 @@
 #!/usr/bin/env python
 """Start-up of ``slipest replay``: cold (kernels compiled) and warm (loaded from numba's cache).
 
-Copies the package out of the source tree (no ``__pycache__``), twice: one
-copy writable (numba caches beside the source, as in a user's virtual
-environment), one read-only (as a system or image install: the cache goes
-to ``$XDG_CACHE_HOME/slipest/numba``, chosen by :mod:`slipest.numba_cache`).
+Copies the package out of the source tree, byte-compiled as pip installs it
+but without numba's cache, twice: one copy writable (numba caches beside the
+source, as in a user's virtual environment), one read-only (as a system or
+image install: the cache goes to ``$XDG_CACHE_HOME/slipest/numba``, chosen by
+:mod:`slipest.numba_cache`).
 For each, times ``python -m slipest replay LOG -o /dev/null`` on a small
 simulated log: the first run (cold: empty cache) and ``--runs`` more
 (warm), each in a fresh process with only the copy on ``PYTHONPATH``, run
@@ -139,7 +140,7 @@ def main(argv=None) -> int:
                 timed([sys.executable, "-c", "import numpy, scipy.linalg, numba"], env, tmp) for _ in range(args.runs)],
         }
         results = []
-        writable = copy_package(tmp / "writable")
+        writable = copy_package(tmp / "writable", compiled=True)
         results.append(measure("writable copy", [], writable, tmp / "w", log, args.runs, writable / "slipest"))
         ro = copy_package(tmp / "readonly", compiled=True)
         prefix, how = read_only_wrapper(ro)
