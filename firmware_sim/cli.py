@@ -30,6 +30,7 @@ import numpy as np
 
 from firmware_sim.device import STATUS_NAMES, Device, ScenarioFeed
 from firmware_sim.faults import FaultPlan, parse_fault
+from slipest import __version__
 
 
 #: The device's IMU noise when neither --noise nor the scenario file says [g].
@@ -89,6 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
         "in real time over a serial link (a pseudo-terminal it creates, or a port) or a CAN bus, "
         "and injects faults on demand.",
     )
+    parser.add_argument("--version", action="version", version=f"firmware-sim {__version__}")
     sub = parser.add_subparsers(dest="link_kind", metavar="LINK", required=True)
     ps = sub.add_parser("serial", help="stream over a pseudo-terminal it creates (default) or a serial port",
                         description="Stream binary frames (slipest.io.serial_frames) over a serial link.")

@@ -16,7 +16,12 @@ Stances are simulated with ``simulate_batch`` in chunks (tqdm progress bar),
 the output directory (default ``out``): ``calibration_table.txt`` (a
 Table-5.2-style report, also printed), ``calibration.png`` and
 ``calibration.json``; ``--write-package-data`` writes the JSON to
-``slipest/data/calibration.json`` instead (the shipped calibration).
+``slipest/data/calibration.json`` instead (the shipped calibration).  A
+calibration file that already holds the same calibration is left untouched:
+a rerun differs only in its time of writing (``created_utc``), the command
+line (``created_by``, e.g. another ``-o``) and in float noise (about 1e-11,
+from the order of parallel sums), which would otherwise show as a change to
+the tracked file.
 
     python tools/calibrate.py [-o out] [--write-package-data]
 """
@@ -24,6 +29,7 @@ Table-5.2-style report, also printed), ``calibration.png`` and
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import shlex
 import sys
@@ -45,6 +51,44 @@ from slipest.plotting import pyplot  # noqa: E402  (matplotlib: pip install 'sli
 plt = pyplot()
 
 PACKAGE_JSON = Path(__file__).resolve().parents[1] / "slipest" / "data" / "calibration.json"
+
+
+#: Keys that say when and with which command line a file was written, not what it holds: left out when
+#: comparing calibrations (a rerun with another ``-o`` gives the same calibration).
+VOLATILE_KEYS = frozenset({"created_utc", "created_by"})
+#: Numbers this close (relative, absolute) are the same.  A rerun's float noise, measured against the
+#: shipped file: at most 6.5e-12 absolute, and 1.3e-10 relative on values above 1e-3.
+SAME_RTOL = 1e-9
+SAME_ATOL = 1e-10
+
+
+def same_calibration(a, b) -> bool:
+    """True when two calibration documents (parsed JSON) differ at most in :data:`VOLATILE_KEYS` and
+    in numbers within :data:`SAME_RTOL` / :data:`SAME_ATOL`."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        keys = (a.keys() | b.keys()) - VOLATILE_KEYS
+        return all(k in a and k in b and same_calibration(a[k], b[k]) for k in keys)
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(same_calibration(x, y) for x, y in zip(a, b))
+    if isinstance(a, bool) or isinstance(b, bool):
+        return type(a) is type(b) and a == b
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
+        return math.isclose(a, b, rel_tol=SAME_RTOL, abs_tol=SAME_ATOL)
+    return a == b
+
+
+def write_calibration(cal: dict, path: Path) -> bool:
+    """Write ``cal`` to ``path`` (validated) unless the file there already holds the same calibration
+    (:func:`same_calibration`); True when written."""
+    cal_mod.validate_calibration(cal)
+    try:
+        old = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        old = None  # missing or unreadable: written
+    if old is not None and same_calibration(old, json.loads(json.dumps(cal))):
+        return False
+    cal_mod.save_calibration(cal, path)
+    return True
 
 
 def _floats(text: str) -> np.ndarray:
@@ -361,9 +405,11 @@ def main(argv=None) -> int:
     cal["eq515"]["r2_end_to_end_val"] = json_number(eq_val["r2"])
     cal["eq515"]["rmse_end_to_end_val"] = json_number(eq_val["rmse"])
     json_path = PACKAGE_JSON if args.write_package_data else out / "calibration.json"
-    cal_mod.save_calibration(cal, json_path)
+    written = write_calibration(cal, json_path)
     fwd.check_forward_section(cal_mod.load_calibration(json_path))  # round-trip check
-    print(f"wrote {out / 'calibration_table.txt'}, {out / 'calibration.png'}, {json_path}")
+    print(f"wrote {out / 'calibration_table.txt'}, {out / 'calibration.png'}"
+          + (f", {json_path}" if written else f"; {json_path} left as it was (the same calibration: only the "
+             f"time and command line of writing and float noise would have changed)"))
     return 0
 
 

@@ -1,4 +1,4 @@
-"""How estimates are printed as CSV: one row per leg cycle, the same columns everywhere.
+"""How estimates are printed, as CSV or JSON lines: one row per leg cycle, the same columns everywhere.
 
 The columns are the fields of :class:`slipest.online.Estimate`
 (:data:`slipest.online.ESTIMATE_FIELDS`), in that order, as ``slipest
@@ -12,9 +12,16 @@ microsecond, other floats with 6 significant digits, NaN (a cycle not
 estimated) as ``nan``, booleans as 1/0.  The same formatting as
 ``slipest replay``'s CSV (a test compares a live run with a replay of its
 recording, row by row).
+
+``--format jsonl`` writes one JSON object per line instead
+(:func:`json_row`), with the same keys in the same order (the live
+commands' ``wheel`` first), full float precision, and ``null`` for NaN.
 """
 
 from __future__ import annotations
+
+import json
+import math
 
 import numpy as np
 
@@ -46,6 +53,20 @@ def header(prefix: tuple[str, ...] = ()) -> str:
 def row(estimate, prefix: tuple = ()) -> str:
     """One estimate as a CSV row (without newline); ``prefix``: values of the leading columns."""
     return ",".join([format_value(p) for p in prefix] + [format_value(getattr(estimate, c), c) for c in COLUMNS])
+
+
+def _json_value(v):
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    return v
+
+
+def json_row(estimate, prefix: dict | None = None) -> str:
+    """One estimate as a JSON object on one line (without newline): the items of ``prefix`` first
+    (e.g. ``{"wheel": 0}``), then the columns; NaN and infinities as ``null``."""
+    obj = dict(prefix or {})
+    obj.update((c, _json_value(getattr(estimate, c))) for c in COLUMNS)
+    return json.dumps(obj, allow_nan=False)
 
 
 def parse_rows(lines, prefix: tuple[str, ...] = ()) -> list[dict]:

@@ -19,7 +19,8 @@ def add_estimator_arguments(p) -> None:
 
     p.add_argument("--method", choices=METHODS, default="default",
                    help="default: multi-feature inverse with the soil learnt as it goes; eq515: thesis Eq. 5.15 "
-                   "(needs --kS and --dphi or --phiS/--phiD, or --use-reference)")
+                   "(always needs --kS; and --dphi, or --phiS with --phiD, or --use-reference to learn dphi from "
+                   "the reference slip)")
     p.add_argument("--model", metavar="FILE", default=None,
                    help="inverse model JSON of the default method (default: the shipped one, made for 4 legs at "
                    "0.63 rad/s; tools/train_inverse.py --legs N makes one for another wheel-leg)")

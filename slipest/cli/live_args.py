@@ -7,20 +7,36 @@ the :class:`~slipest.live.LiveEstimation` they describe
 counters for people (:func:`format_counters`), and the run of a command
 around a source (:func:`run_command`: counters at exit and on SIGUSR1, the
 ``--report`` JSON, exit code 0 on a normal stop).
+
+Estimates go to stdout (``--format csv``, ``jsonl`` or ``none``); every
+other message goes through :mod:`logging` to stderr, with time and level
+(``-v``/``-q``/``--log-level``): INFO for the start, the stop and the
+counters (at exit and on SIGUSR1), WARNING for the link's trouble
+(disconnections, reconnections, bus errors), ERROR for what stops the
+command.  ``--config FILE`` reads options from a TOML file
+(:mod:`slipest.cli.config_file`).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 
+from slipest.cli.command import add_logging_arguments
 from slipest.cli.estimator_args import add_estimator_arguments, model_from_args, soil_from_args
 from slipest.live import LiveEstimation, StopConditions, run_live
+
+#: What ``--format`` offers: CSV rows, JSON lines, or no estimates printed.
+FORMATS = ("csv", "jsonl", "none")
 
 
 def add_live_arguments(p: argparse.ArgumentParser, link: str) -> None:
     """Options shared by the live commands; ``link``: what ``--wait-open`` opens (for its help)."""
+    p.add_argument("--config", metavar="FILE.toml",
+                   help="read options from a TOML file: its keys are this command's long options (e.g. legs = 4, "
+                   "wheel = [0, 1], model = \"m.json\"); options on the command line override it")
     p.add_argument("--wait-open", type=float, default=5.0, metavar="S",
                    help=f"keep trying to open {link} for S seconds at start (default 5)")
     e = p.add_argument_group("estimation")
@@ -39,7 +55,10 @@ def add_live_arguments(p: argparse.ArgumentParser, link: str) -> None:
                    "{wheel} replaced); flushed continuously, complete after Ctrl-C or SIGTERM")
     o.add_argument("--overwrite", action="store_true", help="overwrite existing --record files")
     o.add_argument("--report", metavar="FILE", help="write the counters and latency figures as JSON at exit")
-    o.add_argument("-q", "--quiet", action="store_true", help="do not print estimates (counters still at exit)")
+    o.add_argument("--format", choices=FORMATS, default="csv",
+                   help="estimates on stdout: csv (default; a header, then one row per leg cycle, wheel first), "
+                   "jsonl (one JSON object per line, wheel first), none (not printed)")
+    add_logging_arguments(p)
     s = p.add_argument_group("stopping")
     s.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
     s.add_argument("--cycles", type=int, default=None, metavar="N",
@@ -71,19 +90,22 @@ def live_from_args(args, source, on_estimate) -> LiveEstimation:
 
 
 def make_printer(args, out=None):
-    """The ``on_estimate`` callback that prints rows (header first; nothing with ``--quiet``)."""
+    """The ``on_estimate`` callback that prints each estimate in ``args.format`` (csv: header first;
+    jsonl: one object per line; none: nothing), wheel first, flushed."""
     from slipest.cli import estimate_output
 
     out = out or sys.stdout
+    fmt = getattr(args, "format", "csv")
     state = {"header": False}
 
     def on_estimate(wheel, est, info):
-        if args.quiet:
-            return
-        if not state["header"]:
-            print(estimate_output.header(("wheel",)), file=out)
-            state["header"] = True
-        print(estimate_output.row(est, (wheel,)), file=out, flush=True)
+        if fmt == "jsonl":
+            print(estimate_output.json_row(est, {"wheel": wheel}), file=out, flush=True)
+        elif fmt == "csv":
+            if not state["header"]:
+                print(estimate_output.header(("wheel",)), file=out)
+                state["header"] = True
+            print(estimate_output.row(est, (wheel,)), file=out, flush=True)
 
     return on_estimate
 
@@ -106,28 +128,28 @@ def format_counters(source: dict, estimation: dict, latency: dict) -> str:
 
 
 def run_command(prog: str, args, source, live: LiveEstimation, started: str) -> int:
-    """Start ``source`` (``--wait-open``), announce ``started`` on stderr, run until a stop
-    condition, print the reason and the counters, write ``--report``.  Returns 0 on a normal
-    stop (duration, cycles, idle, Ctrl-C, SIGTERM); SystemExit when the source cannot be opened
-    or a later wheel's recording exists."""
-    err = sys.stderr
+    """Start ``source`` (``--wait-open``), log ``started``, run until a stop condition, log the
+    reason and the counters, write ``--report``.  Returns 0 on a normal stop (duration, cycles,
+    idle, Ctrl-C, SIGTERM); SystemExit when the source cannot be opened or a later wheel's
+    recording exists.  Messages go to the logger named after ``prog`` (``slipest.serial``):
+    the source's notices at WARNING, the rest at INFO."""
+    log = logging.getLogger(prog.replace(" ", "."))
     try:
         source.start(wait_open=args.wait_open)
     except OSError as exc:
         raise SystemExit(f"{prog}: {exc}") from None
-    print(f"slipest: {started}", file=err, flush=True)
+    log.info("%s", started)
 
     def status():
-        print(format_counters(source.counters(), live.counters(), live.latency()), file=err, flush=True)
+        log.info("%s", format_counters(source.counters(), live.counters(), live.latency()))
 
     stop = StopConditions(duration=args.duration, cycles=args.cycles, idle_timeout=args.idle_timeout)
     try:
-        result = run_live(source, live, stop, on_notice=lambda text: print(f"slipest: {text}", file=err, flush=True),
-                          on_status=status)
+        result = run_live(source, live, stop, on_notice=lambda text: log.warning("%s", text), on_status=status)
     except FileExistsError as exc:  # the recording of a wheel that appeared later
         raise SystemExit(f"{prog}: {exc}; use --overwrite") from None
-    print(f"slipest: {result.reason}", file=err)
-    print(format_counters(result.source, result.estimation, result.latency), file=err, flush=True)
+    log.info("%s", result.reason)
+    log.info("%s", format_counters(result.source, result.estimation, result.latency))
     if args.report:
         with open(args.report, "w") as fh:
             json.dump(result.report(), fh, indent=1, default=str)

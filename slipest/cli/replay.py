@@ -42,8 +42,6 @@ Examples::
 from __future__ import annotations
 
 import argparse
-import json
-import math
 import os
 import sys
 
@@ -116,12 +114,6 @@ def options_from_args(args):
                          chunk_rows=args.chunk_rows)
 
 
-def _json_value(v):
-    if isinstance(v, float) and not math.isfinite(v):
-        return None
-    return v
-
-
 class _Writer:
     """Estimate rows as CSV or JSON lines; ``wheel_column``: a leading ``wheel`` (CAN logs)."""
 
@@ -136,9 +128,7 @@ class _Writer:
         if self.fmt == "csv":
             self.stream.write(estimate_output.row(e, (wheel,) if self.prefix else ()) + "\n")
         else:
-            rec = {"wheel": wheel} if self.prefix else {}
-            rec.update((c, _json_value(getattr(e, c))) for c in COLUMNS)
-            self.stream.write(json.dumps(rec, allow_nan=False) + "\n")
+            self.stream.write(estimate_output.json_row(e, {"wheel": wheel} if self.prefix else None) + "\n")
 
 
 def _fail(msg: str) -> int:

@@ -22,7 +22,8 @@ def add_parser(sub) -> None:
     p = add_command(sub, "serial",
                     "estimate slip live from a serial port (binary frames; e.g. firmware-sim serial)", __doc__)
     add_live_arguments(p, "PORT")
-    p.add_argument("port", metavar="PORT", help="serial port or pyserial URL, e.g. /dev/ttyUSB0, /dev/pts/3")
+    p.add_argument("port", metavar="PORT", nargs="?",
+                   help="serial port or pyserial URL, e.g. /dev/ttyUSB0, /dev/pts/3 (or `port` in --config)")
     p.add_argument("--baudrate", type=int, default=921600, help="baud rate (default 921600; ignored by ptys)")
     p.set_defaults(func=run)
 
@@ -31,6 +32,8 @@ def run(args: argparse.Namespace) -> int:
     from slipest.cli.live_args import live_from_args, make_printer, run_command
     from slipest.io.serial_source import SerialSource
 
+    if not args.port:
+        raise SystemExit("slipest serial: no PORT: give it on the command line or as port = \"...\" in --config")
     source = SerialSource(args.port, baudrate=args.baudrate)
     # warmed up before the port is open: a device that waits for its reader starts after it
     live = live_from_args(args, source, make_printer(args))

@@ -4,16 +4,22 @@ Every command that talks CAN (``slipest can``, ``firmware-sim can``, the
 benchmarks in ``tools/``) takes the same options, as python-can's own tools
 do::
 
-    -i/--interface NAME        python-can interface (socketcan, socketcand, virtual, slcan, ...);
-                               omitted: python-can's configuration (~/.canrc, $CAN_INTERFACE)
+    -i/--interface NAME        python-can interface (socketcan, socketcand, virtual, slcan, ...)
     -c/--channel CHANNEL       its channel (vcan0, can0, /dev/ttyACM0, ...)
     -b/--bitrate BPS
     --bus-option KEY=VALUE     any keyword of the interface's Bus class, repeatable;
                                values are parsed as int (also 0x..), float, bool
                                (true/false/yes/no/on/off), none, else kept as text
+    --bus-kwargs KEY=VALUE...  the same, as python-can's tools spell it (several after one flag)
 
 e.g. ``--interface socketcand --channel can0 --bus-option host=127.0.0.1
 --bus-option port=29536`` for slipest's own server (``slipest can-server``).
+What the command line leaves out comes from python-can's own configuration
+(:func:`can.util.load_config`: ``$CAN_INTERFACE``, ``$CAN_CHANNEL``,
+``$CAN_BITRATE``, then the ``[default]`` section of ``~/can.conf``,
+``/etc/can.conf``, ``~/.can``, ``~/.canrc``), as python-can's tools do;
+options on the command line win.  With no interface anywhere, the error
+says where to give one.
 For socketcand, ``tcp_tune`` (TCP_NODELAY) is on unless told otherwise: at
 1 kHz, Nagle's algorithm with delayed ACKs held frames back for up to 40 ms.
 
@@ -44,6 +50,7 @@ __all__ = [
     "ReconnectingBus",
     "add_bus_arguments",
     "bus_config_from_args",
+    "resolve_bus_config",
     "parse_bus_option",
     "parse_bus_value",
 ]
@@ -92,15 +99,20 @@ def add_bus_arguments(parser: argparse.ArgumentParser, *, default_interface: str
                       default_channel: str | None = None) -> None:
     """Add the bus options (see the module docstring) to ``parser``."""
     g = parser.add_argument_group("CAN bus (python-can)")
+    configured = "python-can's configuration ($CAN_INTERFACE, $CAN_CHANNEL, ~/.canrc, /etc/can.conf)"
     g.add_argument("-i", "--interface", default=default_interface,
-                   help="python-can interface: socketcan, socketcand, virtual, slcan, serial, ... "
-                   "(default: %(default)s; none: python-can's configuration file / $CAN_INTERFACE)")
+                   help="python-can interface: socketcan, socketcand, virtual, slcan, serial, ... (default: "
+                   + (default_interface or configured) + ")")
     g.add_argument("-c", "--channel", default=default_channel,
-                   help="channel of the interface, e.g. vcan0, can0, /dev/ttyACM0 (default: %(default)s)")
+                   help="channel of the interface, e.g. vcan0, can0, /dev/ttyACM0 (default: "
+                   + (default_channel or configured) + ")")
     g.add_argument("-b", "--bitrate", type=int, default=None, help="bit rate [bit/s], where the interface needs one")
     g.add_argument("--bus-option", action="append", default=[], metavar="KEY=VALUE",
                    help="keyword argument of the interface's Bus, repeatable; e.g. --bus-option host=127.0.0.1 "
                    "--bus-option port=29536 for socketcand, --bus-option sleep_after_open=0 for slcan")
+    g.add_argument("--bus-kwargs", action="extend", nargs="+", dest="bus_option", metavar="KEY=VALUE",
+                   help="the same as --bus-option, spelt as python-can's tools do: --bus-kwargs host=127.0.0.1 "
+                   "port=29536")
 
 
 @dataclass
@@ -176,14 +188,55 @@ def _quiet_socketcand_splits() -> None:
 
 
 def bus_config_from_args(args: argparse.Namespace) -> BusConfig:
-    """The :class:`BusConfig` the bus options of ``args`` describe (ValueError on a bad option)."""
+    """The :class:`BusConfig` the bus options of ``args`` describe, completed from python-can's
+    configuration (:func:`resolve_bus_config`); ValueError on a bad option or no interface at all."""
     options: dict = {}
     for text in getattr(args, "bus_option", None) or []:
         key, value = parse_bus_option(text)
         options[key] = value
     if getattr(args, "bitrate", None) is not None:
         options["bitrate"] = args.bitrate
-    return BusConfig(args.interface, args.channel, options)
+    return resolve_bus_config(args.interface, args.channel, options)
+
+
+def _configured_interface() -> str | None:
+    """The interface python-can's configuration names, if any (can.rc, environment, files)."""
+    for cfg in (can.rc, can.util.load_environment_config(), can.util.load_file_config()):
+        name = cfg.get("interface") or cfg.get("bustype")
+        if name:
+            return str(name)
+    return None
+
+
+def resolve_bus_config(interface: str | None = None, channel: str | None = None,
+                       options: dict | None = None) -> BusConfig:
+    """A :class:`BusConfig` with what is not given taken from python-can's configuration.
+
+    ``interface``, ``channel`` and ``options`` (keywords of the Bus) win over
+    the configuration (:func:`can.util.load_config`: ``$CAN_INTERFACE``,
+    ``$CAN_CHANNEL``, ``$CAN_BITRATE``, the ``[default]`` section of
+    ``~/can.conf``, ``/etc/can.conf``, ``~/.can``, ``~/.canrc``), which fills
+    the rest.  ValueError when no interface is given or configured, when it
+    is not one python-can knows, or when a configured value is invalid.
+    """
+    given = dict(options or {})
+    if interface is not None:
+        given["interface"] = interface
+    if channel is not None:
+        given["channel"] = channel
+    if "interface" not in given and _configured_interface() is None:
+        raise ValueError("no CAN interface: give -i/--interface (and -c/--channel), or configure python-can: "
+                         "CAN_INTERFACE and CAN_CHANNEL in the environment, or a [default] section with "
+                         "interface = ... and channel = ... in ~/.canrc or /etc/can.conf")
+    try:
+        cfg = dict(can.util.load_config(config=given))
+    except can.CanInterfaceNotImplementedError as exc:
+        raise ValueError(f"{exc} (python-can knows: {', '.join(sorted(can.VALID_INTERFACES))})") from None
+    except (ValueError, TypeError) as exc:
+        raise ValueError(f"python-can's configuration: {exc}") from None
+    resolved_interface = cfg.pop("interface")
+    resolved_channel = cfg.pop("channel", None)
+    return BusConfig(resolved_interface, resolved_channel, cfg)
 
 
 def _socket_of(bus) -> socket.socket | None:
