@@ -29,7 +29,7 @@ Methods (each a :class:`~slipest.cycle_estimator.CycleEstimator`):
 * ``"eq515"``: thesis Eq. 5.15 on ``Da`` (:mod:`slipest.inverse.eq515`).
   Needs ``kS`` and either ``dphi`` (slip from ``Da``) or
   ``use_reference=True`` (``dphi`` learnt from reference slips by a
-  filterpy Kalman filter, as the thesis uses the equation).
+  Kalman filter, as the thesis uses the equation).
 
 Reference slip: ``push(..., slip_ref=...)`` (per sample; e.g. a log's
 ``slip`` column or a later message). It is **ignored** unless

@@ -22,9 +22,9 @@ sweep (``rmse_end_to_end``), an honest, soil-independent figure. In this
 model that RMSE is large (spec section 5: the second-level laws do not
 hold); the number is reported, not tuned.
 
-:class:`Eq515Tracker` is the recursive use: a 1-state filterpy Kalman
-filter on ``dphi`` fed by :meth:`dphi_from_da` whenever a reference slip
-comes, used for the slip of the other cycles.
+:class:`Eq515Tracker` is the recursive use: a 1-state Kalman filter on
+``dphi`` fed by :meth:`dphi_from_da` whenever a reference slip comes, used
+for the slip of the other cycles.
 """
 
 from __future__ import annotations
@@ -32,7 +32,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from filterpy.kalman import KalmanFilter
 
 from slipest.cycle_estimator import CycleEstimate, CycleEstimator
 from slipest.features import INDEX
@@ -115,9 +114,12 @@ class Eq515Tracker(CycleEstimator):
     ``soil``: ``kS`` [N/m] must be known (Eq. 5.15 cannot learn it alongside
     ``dphi``); with ``dphi`` known it is used as is, else ``dphi`` [rad] is a
     random walk (process noise ``q`` [rad^2] per cycle) in a 1-state
-    :class:`filterpy.kalman.KalmanFilter`, started at ``dphi0`` with standard
+    filter started at ``dphi0`` with standard
     deviation ``dphi0_std`` and updated by :meth:`Eq515Inverse.dphi_from_da`
-    whenever a reference slip comes (only with ``use_reference``). The slip
+    whenever a reference slip comes (only with ``use_reference``): a 1-state
+    Kalman filter, written out (predict ``P += q``; update ``K = P / (P + r)``,
+    ``x += K (z - x)``, ``P = (1 - K)^2 P + K^2 r``, the Joseph form filterpy
+    uses; docs/estimator.md says why not filterpy). The slip
     of every cycle is Eq. 5.15 at the current ``dphi``; its std combines the
     equation's RMSE and the ``dphi`` uncertainty through ``bmu Da + cmu``.
     ``model_legs``, ``model_omega`` [rad/s]: the geometry the coefficients
@@ -156,26 +158,22 @@ class Eq515Tracker(CycleEstimator):
                    model_legs=int(params.get("nL", 4)), model_omega=float(params.get("omega", 0.63)), **options)
 
     def reset(self) -> None:
-        kf = KalmanFilter(dim_x=1, dim_z=1)
-        kf.x = np.array([[self._dphi0]])
-        kf.P = np.array([[0.0 if self.dphi_known else self._dphi0_std**2]])
-        kf.F = np.eye(1)
-        kf.H = np.eye(1)
-        kf.Q = np.array([[0.0 if self.dphi_known else self._q]])
-        self.kf = kf
+        #: the filter's state: ``dphi`` [rad] and its variance [rad^2]
+        self._x = self._dphi0
+        self._p = 0.0 if self.dphi_known else self._dphi0_std**2
 
     @property
     def dphi(self) -> float:
-        return float(self.kf.x[0, 0])
+        return float(self._x)
 
     @property
     def dphi_std(self) -> float:
-        return math.sqrt(max(float(self.kf.P[0, 0]), 0.0))
+        return math.sqrt(max(self._p, 0.0))
 
     def step(self, da_g: float, slip_ref: float | None = None) -> tuple[float, float, float, float, bool]:
         """One cycle's ``Da`` [g] and optional reference slip [-]: ``(slip, slip_std, dphi, dphi_std, used_reference)``."""
         if not self.dphi_known:
-            self.kf.predict()
+            self._p += self._q  # predict: dphi is a random walk
         dphi, dstd = self.dphi, self.dphi_std
         slip = float(self.inv.slip_from_da(da_g, dphi, self.kS))
         sens = self.inv.cmu + self.inv.bmu * da_g
@@ -185,7 +183,9 @@ class Eq515Tracker(CycleEstimator):
             z = float(self.inv.dphi_from_da(da_g, slip_ref, self.kS))
             r = float(self.inv.dphi_std(da_g))
             if math.isfinite(z) and math.isfinite(r):
-                self.kf.update(np.array([[z]]), R=np.array([[r * r]]))
+                gain = self._p / (self._p + r * r)
+                self._x += gain * (z - self._x)
+                self._p = (1.0 - gain) ** 2 * self._p + gain**2 * r * r
                 used = True
         return slip, slip_std, self.dphi, self.dphi_std, used
 
