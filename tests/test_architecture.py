@@ -108,3 +108,9 @@ def test_a_violation_is_caught(tmp_path, monkeypatch):
     monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
     imps = _imports(pkg / "bad.py")
     assert "serial" in imps and "slipest.cli.main" in imps
+
+
+def test_only_the_drawing_modules_import_matplotlib():
+    drawing = ("slipest.plotting", "slipest.offline.replay_plot", "slipest.diagnosis.plots")
+    bad = {m: sorted(i for i in imps if _under(i, ("matplotlib",))) for m, imps in SLIPEST.items() if m not in drawing}
+    assert not {m: v for m, v in bad.items() if v}
