@@ -132,6 +132,22 @@ def test_waiting_for_a_first_frame_is_reported():
     run_live(source, LiveEstimation(source), StopConditions(duration=0.8), handle_signals=False, quiet_notice=0.3,
              on_notice=notices.append)
     assert notices and notices[0].startswith("no data yet after 0.3 s: waiting for the device")
+    assert not any(n.startswith(("first data", "data again")) for n in notices)
+
+
+def test_the_first_data_after_a_wait_is_said():
+    class Slow(_ListSource):
+        def _read(self):
+            if self._k == 0:
+                self._stop.wait(0.6)
+            return super()._read()
+
+    source = Slow(n_batches=3)
+    notices = []
+    source.start()
+    run_live(source, LiveEstimation(source), StopConditions(duration=1.0), handle_signals=False, quiet_notice=0.3,
+             on_notice=notices.append)
+    assert notices[0].startswith("no data yet after 0.3 s") and notices[1].startswith("first data after 0.")
 
 
 def test_a_late_start_is_a_notice_and_a_counter():

@@ -184,6 +184,7 @@ class _QuietNotices:
         self.on_notice = on_notice
         self._next = after  # quiet time [s] of the next notice
         self._said = False
+        self._seen = False  # data came before
 
     def check(self, state: LoopState, quiet_since: float, got_data: bool) -> None:
         """After each poll: ``quiet_since`` [s] the last batch before this poll (or the start)."""
@@ -192,11 +193,13 @@ class _QuietNotices:
         quiet = state.now - quiet_since
         if got_data:
             if self._said:
-                self.on_notice(f"data again after {quiet:.1f} s without")
+                again = f"data again after {quiet:.1f} s without"
+                self.on_notice(again if self._seen else f"first data after {quiet:.1f} s")
             self._said = False
+            self._seen = True
             self._next = self.after
         elif quiet >= self._next:
-            if state.last_data is None:
+            if not self._seen:
                 what = f"no data yet after {quiet:.1f} s: waiting for the device"
             else:
                 what = f"no data for {quiet:.1f} s (the device stopped, or the link went quiet); waiting"
@@ -234,7 +237,7 @@ def run_live(source, live, stop: StopConditions | None = None, *, on_notice: Cal
     def notices():
         for text in source.notices():
             on_notice(text)
-        for text in live.notices():
+        for text in getattr(live, "notices", list)():  # (an estimation of the caller's may have none)
             on_notice(text)
 
     try:
