@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import logging
 import signal
 import sys
 import threading
@@ -31,6 +32,7 @@ import numpy as np
 from firmware_sim.device import STATUS_NAMES, Device, ScenarioFeed
 from firmware_sim.faults import FaultPlan, parse_fault
 from slipest import __version__
+from slipest.io.source import one_line, one_line_logs
 
 
 #: The device's IMU noise when neither --noise nor the scenario file says [g].
@@ -38,7 +40,7 @@ DEFAULT_NOISE_G = 0.01
 
 
 def _announce(text: str) -> None:
-    print(f"firmware-sim: {text}", flush=True)
+    print(f"firmware-sim: {one_line(text)}", flush=True)
 
 
 def add_scenario_arguments(p: argparse.ArgumentParser) -> None:
@@ -162,6 +164,9 @@ def make_link(args):
         return PtyLink(link_path=args.link, settle=args.settle, announce=_announce)
     from firmware_sim.can_link import CanLink
     from slipest.io.bus_args import bus_config_from_args
+    from slipest.io.can_source import SOCKETCAND_LOGGER
+
+    one_line_logs(SOCKETCAND_LOGGER)
 
     return CanLink(bus_config_from_args(args), announce=_announce, wait=args.wait_bus)
 
@@ -186,6 +191,8 @@ def _summary(report: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    # libraries' warnings (python-can's) on stderr, one line each, marked as ours
+    logging.basicConfig(format="firmware-sim: %(name)s: %(message)s", level=logging.WARNING, stream=sys.stderr)
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

@@ -23,13 +23,10 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import fcntl
 import os
 import select
 import struct
-import termios
 import time
-import tty
 from typing import Callable
 
 import numpy as np
@@ -91,6 +88,8 @@ class PtyLink(SerialLink):
         return self.link_path or self.path or "pty"
 
     def open(self) -> None:
+        import tty  # POSIX only, like pseudo-terminals (PortLink works on Windows too)
+
         master, slave = os.openpty()
         tty.setraw(slave)
         self.path = os.ttyname(slave)
@@ -177,6 +176,9 @@ class PtyLink(SerialLink):
         calls ``tty_buffer_flush_work``), so bytes in flight are not taken for
         bytes read.
         """
+        import fcntl
+        import termios
+
         p = select.poll()
         p.register(fd, select.POLLIN)
         p.poll(0)

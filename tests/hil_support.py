@@ -128,9 +128,9 @@ def serial_device(proc: Proc, timeout: float = 30.0) -> str:
     return proc.wait_line(r"firmware-sim: serial device (\S+)", timeout).group(1)
 
 
-def can_server() -> tuple[Proc, int]:
-    """``slipest can-server --port 0`` in its own process: (process, port)."""
-    proc = slipest_cmd("can-server", "--port", "0")
+def can_server(*options: str) -> tuple[Proc, int]:
+    """``slipest can-server --port 0 [options]`` in its own process: (process, port)."""
+    proc = slipest_cmd("can-server", "--port", "0", *options)
     port = int(proc.wait_line(r"listening on [\d.]+:(\d+)", 20).group(1))
     return proc, port
 

@@ -91,7 +91,7 @@ def test_a_stuck_sensor_is_never_handed_on_and_normal_data_is_not_delayed():
 
 
 #: What can happen to a device's stream (see frames_with_events).
-EVENTS = ("run", "lose", "dup", "swap", "restart", "stuck", "burst", "stall", "jump", "late", "early")
+EVENTS = ("run", "lose", "dup", "swap", "restart", "reboot", "stuck", "burst", "stall", "jump", "late", "early")
 #: How a link carries the frames: WheelStream options, and whether arrival times are given.
 LINKS = {"serial": ({}, True), "serial, no arrival times": ({}, False),
          "can": ({"seq_modulus": 256, "time_modulus": 0.65536}, True),
@@ -103,21 +103,24 @@ def frames_with_events(events, wrapped: bool, seed: int):
 
     Starts with 200 plain frames at 1 kHz, then each (event, k): ``run`` k plain frames; ``lose`` k
     frames never sent; ``dup`` the last frame again; ``swap`` two frames in swapped order; ``restart``
-    the counter back to k; ``stuck`` k frames with the same az; ``burst`` k frames arriving together
-    (one intake, up to 0.4 s late); ``stall`` the same, 0.3-0.7 s late (longer than half CAN's time
-    period); ``jump`` an angle step of 2 rad; ``late`` / ``early`` a frame 1.7 / 0.4 periods after the last.
+    the counter back to k; ``reboot`` the counter back to 0 and the device clock to k ms; ``stuck`` k
+    frames with the same az; ``burst`` k frames arriving together (one intake, up to 0.4 s late);
+    ``stall`` the same, 0.3-0.7 s late (longer than half CAN's time period); ``jump`` an angle step of
+    2 rad; ``late`` / ``early`` a frame 1.7 / 0.4 periods after the last.
     ``wrapped``: an 8-bit counter and times modulo 0.65536 s (CAN), else 16 bits and absolute (serial)."""
     rng = np.random.default_rng(seed)
     out = []
     dev = {"seq": int(rng.integers(0, 1 << 16)), "t": 5.0 + float(rng.random()), "theta": float(rng.normal(0, 3)),
-           "omega": float(rng.uniform(-3, 3)), "az": None, "intake": None}
+           "omega": float(rng.uniform(-3, 3)), "az": None, "intake": None, "host": 0.0}
 
     def make(dt=1e-3, dtheta=None):
         dev["seq"] += 1
         dev["t"] += dt
         dev["theta"] += dev["omega"] * dt if dtheta is None else dtheta
         az = dev["az"] if dev["az"] is not None else 9.81 + float(rng.normal(0, 0.1))
-        intake = dev["intake"] if dev["intake"] is not None else dev["t"] + 0.002 + float(rng.random()) * 1e-4
+        intake = dev["intake"]
+        if intake is None:
+            intake = dev["t"] + dev["host"] + 0.002 + float(rng.random()) * 1e-4
         seq = dev["seq"] % (256 if wrapped else 1 << 16)
         t = math.fmod(dev["t"], 0.65536) if wrapped else dev["t"]
         theta = math.remainder(dev["theta"], 2 * math.pi)
@@ -138,12 +141,16 @@ def frames_with_events(events, wrapped: bool, seed: int):
         elif event == "restart":
             dev["seq"] = k - 1
             out.append(make())
+        elif event == "reboot":
+            dev["host"] += dev["t"] - k * 1e-3
+            dev["seq"], dev["t"] = -1, k * 1e-3 - 1e-3
+            out.append(make())
         elif event == "stuck":
             dev["az"] = 9.81 + float(rng.normal(0, 0.1))
             out += [make() for _ in range(k)]
             dev["az"] = None
         elif event in ("burst", "stall"):
-            dev["intake"] = dev["t"] + k * 1e-3 + (0.302 if event == "stall" else 0.002)
+            dev["intake"] = dev["t"] + dev["host"] + k * 1e-3 + (0.302 if event == "stall" else 0.002)
             out += [make() for _ in range(k)]
             dev["intake"] = None
         elif event == "jump":
@@ -159,7 +166,8 @@ def frames_with_events(events, wrapped: bool, seed: int):
 
 def stream_state(s: WheelStream) -> tuple:
     return (s._period, s._omega, s._last_seq, s._last_t, s._last_theta, s._last_raw_t, s._last_intake,
-            s._prev_az, s._stuck, tuple(s._held), tuple(sorted(s.counters().items())))
+            s._prev_az, s._stuck, tuple(s._held), tuple(sorted(s.counters().items())), s._t_offset, s._anchor_t,
+            s._anchor_steps, tuple(s.events))
 
 
 def same_samples(a: WheelSamples, b: WheelSamples) -> bool:

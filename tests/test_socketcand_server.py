@@ -356,38 +356,139 @@ def test_open_refused_channel_and_unknown_commands():
         stop()
 
 
+def stream_numbered(host: str, port: int, stop, n: int, clients: int) -> tuple[list[int], dict, int]:
+    """Send n numbered frames from one python-can client to another that reads them, once ``clients`` are in
+    raw mode: (numbers received, the server's stats at the end, the most bytes it had queued at a check)."""
+    with socketcand_bus(host, port) as tx, socketcand_bus(host, port) as rx:
+        assert stop.wait_for_clients(clients)
+        received = []
+
+        def drain():
+            while len(received) < n:
+                msg = rx.recv(5.0)
+                if msg is None:
+                    return
+                received.append(int.from_bytes(msg.data, "little"))
+
+        reader = threading.Thread(target=drain)
+        reader.start()
+        queued = 0
+        for i in range(n):
+            tx.send(can.Message(arbitration_id=0x55, is_extended_id=False, data=i.to_bytes(4, "little")))
+            if i % 100 == 0:  # a reading client keeps up: at most ~500 frames (20 KB) behind
+                deadline = time.monotonic() + 5
+                while len(received) < i - 400 and time.monotonic() < deadline:
+                    time.sleep(0.001)
+            if i % 2000 == 0:
+                queued = max(queued, stop.stats()["bytes_queued"])
+        reader.join(30)
+        return received, stop.stats(), queued
+
+
 def test_a_client_that_never_reads_does_not_stall_the_bus():
     host, port, stop = ss.start_in_thread(max_client_buffer=64 * 1024, sndbuf=16 * 1024)
     try:
         stuck = raw_client(host, port, rcvbuf=4096)  # connected, in raw mode, never reads
         n = 20_000
-        with socketcand_bus(host, port) as tx, socketcand_bus(host, port) as rx:
-            assert stop.wait_for_clients(3)
-            received = []
-
-            def drain():
-                while len(received) < n:
-                    msg = rx.recv(5.0)
-                    if msg is None:
-                        return
-                    received.append(int.from_bytes(msg.data, "little"))
-
-            reader = threading.Thread(target=drain)
-            reader.start()
-            for i in range(n):
-                tx.send(can.Message(arbitration_id=0x55, is_extended_id=False, data=i.to_bytes(4, "little")))
-                if i % 100 == 0:  # a reading client keeps up: at most ~500 frames (20 KB) behind
-                    deadline = time.monotonic() + 5
-                    while len(received) < i - 400 and time.monotonic() < deadline:
-                        time.sleep(0.001)
-            reader.join(20)
-            s = stop.stats()
+        received, s, _ = stream_numbered(host, port, stop, n, clients=3)
         stuck.close()
     finally:
         stop()
     assert received == list(range(n))  # the reading client lost nothing
     assert s["frames_dropped"] > 0  # the stuck client's overflow was dropped
     assert s["frames_out"] + s["frames_dropped"] == 2 * n
+
+
+def test_connections_past_the_limit_are_refused_and_counted():
+    host, port, stop = ss.start_in_thread(max_clients=3)
+    try:
+        first = [raw_client(host, port) for _ in range(3)]
+        extra = socket.create_connection((host, port), timeout=5)
+        assert extra.recv(64) == b"< error too many clients >"
+        assert extra.recv(64) == b""  # and closed
+        extra.close()
+        with pytest.raises(BusOpenError, match="too many clients"):  # python-can's client says why
+            socketcand_bus(host, port)
+        first[0].close()
+        deadline = time.monotonic() + 5
+        while stop.stats()["clients"] > 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        again = raw_client(host, port)  # room again
+        s = stop.stats()
+        for sock in first[1:] + [again]:
+            sock.close()
+    finally:
+        stop()
+    assert s["clients_refused"] >= 2 and s["clients"] == 3 and s["clients_dropped"] == 0
+
+
+def test_at_the_connection_limit_a_new_client_takes_the_place_of_a_stuck_one():
+    host, port, stop = ss.start_in_thread(max_clients=3, sndbuf=16 * 1024)
+    try:
+        stuck = raw_client(host, port, rcvbuf=4096)  # never reads
+        reader = raw_client(host, port)
+        reader.settimeout(0.05)
+        reading = threading.Event()
+        reading.set()
+
+        def keep_reading():  # the reader keeps up: nothing stays queued for it
+            while reading.is_set():
+                try:
+                    reader.recv(65536)
+                except socket.timeout:
+                    pass
+
+        drainer = threading.Thread(target=keep_reading)
+        drainer.start()
+        tx = raw_client(host, port)  # the third
+        tx.sendall(b"".join(b"< send 55 4 %x %x 0 0 >" % (i & 0xFF, i >> 8) for i in range(20000)))
+        deadline = time.monotonic() + 5
+        while stop.stats()["bytes_queued"] == 0 and time.monotonic() < deadline:  # the stuck client's queue
+            time.sleep(0.01)
+        newcomer = raw_client(host, port)  # a fourth: the stuck one makes room
+        stuck.settimeout(5)
+        while stuck.recv(65536):  # what its kernel held, then the end
+            pass
+        s = stop.stats()
+        reading.clear()
+        drainer.join(5)
+        for sock in (stuck, reader, tx, newcomer):
+            sock.close()
+    finally:
+        stop()
+    assert s["clients_dropped"] == 1 and s["clients_refused"] == 0 and s["clients"] == 3
+
+
+def test_many_clients_that_never_read_are_dropped_slowest_first_and_the_reader_loses_nothing():
+    """A total budget: 30 clients that never read, 1 MiB for all their queues together; the server drops the
+    slowest clients (most bytes queued) to stay within it, and a client that reads receives every frame."""
+    budget = 1 << 20
+    host, port, stop = ss.start_in_thread(max_buffer=budget, max_client_buffer=512 * 1024, sndbuf=16 * 1024)
+    stuck = []
+    try:
+        stuck = [raw_client(host, port, rcvbuf=4096) for _ in range(30)]
+        n = 40_000
+        received, s, peak = stream_numbered(host, port, stop, n, clients=32)
+        closed = 0
+        for sock in stuck:  # the dropped ones read what their kernel held, then the end of the connection
+            sock.settimeout(0.5)
+            try:
+                while sock.recv(65536):
+                    pass
+                closed += 1
+            except ConnectionResetError:
+                closed += 1
+            except socket.timeout:  # still connected: nothing more comes
+                pass
+    finally:
+        for sock in stuck:
+            sock.close()
+        stop()
+    assert received == list(range(n))  # the reading client lost nothing
+    assert s["clients_dropped"] >= 20  # most of the 30 went, one by one
+    assert s["bytes_queued_peak"] <= budget + 64 * 1024  # over by one delivery at most, before a drop
+    assert peak <= budget
+    assert closed == s["clients_dropped"] and s["clients"] == 2 + 30 - s["clients_dropped"]
 
 
 def test_clients_joining_a_busy_bus_always_complete_the_handshake(thread_server):

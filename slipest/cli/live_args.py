@@ -6,7 +6,8 @@ the :class:`~slipest.live.LiveEstimation` they describe
 (:func:`live_from_args`), the estimate rows (:func:`make_printer`), the
 counters for people (:func:`format_counters`), and the run of a command
 around a source (:func:`run_command`: counters at exit and on SIGUSR1, the
-``--report`` JSON, exit code 0 on a normal stop).
+``--report`` JSON, exit code 0 on a normal stop; a second Ctrl-C or SIGTERM
+while it stops is ignored, so the recording and the report are complete).
 
 Estimates go to stdout (``--format csv``, ``jsonl`` or ``none``); every
 other message goes through :mod:`logging` to stderr, with time and level
@@ -26,7 +27,9 @@ import sys
 
 from slipest.cli.command import add_logging_arguments
 from slipest.cli.estimator_args import add_estimator_arguments, model_from_args, soil_from_args
+from slipest.io.device_stream import STUCK_TIME
 from slipest.live import LiveEstimation, StopConditions, run_live
+from slipest.live.loop import StopSignals
 
 #: What ``--format`` offers: CSV rows, JSON lines, or no estimates printed.
 FORMATS = ("csv", "jsonl", "none")
@@ -46,9 +49,13 @@ def add_live_arguments(p: argparse.ArgumentParser, link: str) -> None:
                    help="learn the soil from the reference slip frames the device sends (testbeds)")
     e.add_argument("--wheel", type=int, action="append", default=None, metavar="W",
                    help="estimate only this wheel (repeatable; default: every wheel seen)")
-    e.add_argument("--stuck-samples", type=int, default=50, metavar="N",
-                   help="az bit-identical over N consecutive samples is a stuck sensor: not estimated from "
-                   "(default 50; 0: off; noise-free simulated data over CAN needs 0)")
+    stuck = e.add_mutually_exclusive_group()
+    stuck.add_argument("--stuck-time", type=float, default=STUCK_TIME, metavar="S",
+                       help="az bit-identical for S seconds is a stuck sensor: not estimated from (default "
+                       f"{STUCK_TIME:g}: {STUCK_TIME * 1000:g} samples at 1 kHz, at least 12 samples at lower rates; "
+                       "0: off; noise-free simulated data over CAN needs 0)")
+    stuck.add_argument("--stuck-samples", type=int, default=None, metavar="N",
+                       help="a stuck sensor is N bit-identical samples instead (0: off)")
     o = p.add_argument_group("output")
     o.add_argument("--record", metavar="FILE",
                    help="record the input to a log CSV (wheel 0: FILE; wheel k: STEM.wheelK.EXT, or FILE with "
@@ -64,7 +71,8 @@ def add_live_arguments(p: argparse.ArgumentParser, link: str) -> None:
     s.add_argument("--cycles", type=int, default=None, metavar="N",
                    help="stop once every wheel seen has N leg cycles estimated or flagged")
     s.add_argument("--idle-timeout", type=float, default=None, metavar="S",
-                   help="stop when no frame arrived for S seconds (after the first one)")
+                   help="stop when no frame arrived for S seconds (after the first one); without a stop option "
+                   "the run goes on until Ctrl-C or SIGTERM, saying when no data came for 5 s")
     t = p.add_argument_group("timing")
     t.add_argument("--sim-speed", type=float, default=None, metavar="S",
                    help="the device is firmware-sim on this host with --speed S: its timestamps are this host's "
@@ -79,7 +87,8 @@ def live_from_args(args, source, on_estimate) -> LiveEstimation:
     try:
         live = LiveEstimation(source, n_legs=args.legs, method=args.method, soil=soil_from_args(args),
                               use_reference=args.use_reference, model=model_from_args(args), wheels=args.wheel,
-                              stuck_samples=args.stuck_samples, sim_speed=args.sim_speed, record=args.record,
+                              stuck_samples=args.stuck_samples, stuck_time=args.stuck_time,
+                              sim_speed=args.sim_speed, record=args.record,
                               overwrite=args.overwrite, on_estimate=on_estimate)
         live.warmup()  # also checks the estimator options (e.g. eq515 without a soil)
     except FileExistsError as exc:
@@ -132,25 +141,32 @@ def run_command(prog: str, args, source, live: LiveEstimation, started: str) -> 
     reason and the counters, write ``--report``.  Returns 0 on a normal stop (duration, cycles,
     idle, Ctrl-C, SIGTERM); SystemExit when the source cannot be opened or a later wheel's
     recording exists.  Messages go to the logger named after ``prog`` (``slipest.serial``):
-    the source's notices at WARNING, the rest at INFO."""
+    the source's notices at WARNING, the rest at INFO.  From the start of the run to the exit, a
+    stop signal after the first is counted (``signals_ignored``) and ignored: the command is exiting."""
     log = logging.getLogger(prog.replace(" ", "."))
     try:
         source.start(wait_open=args.wait_open)
     except OSError as exc:
         raise SystemExit(f"{prog}: {exc}") from None
-    log.info("%s", started)
+    with StopSignals(restore=False) as signals:
+        log.info("%s", started)
 
-    def status():
-        log.info("%s", format_counters(source.counters(), live.counters(), live.latency()))
+        def status():
+            log.info("%s", format_counters(source.counters(), live.counters(), live.latency()))
 
-    stop = StopConditions(duration=args.duration, cycles=args.cycles, idle_timeout=args.idle_timeout)
-    try:
-        result = run_live(source, live, stop, on_notice=lambda text: log.warning("%s", text), on_status=status)
-    except FileExistsError as exc:  # the recording of a wheel that appeared later
-        raise SystemExit(f"{prog}: {exc}; use --overwrite") from None
-    log.info("%s", result.reason)
-    log.info("%s", format_counters(result.source, result.estimation, result.latency))
-    if args.report:
-        with open(args.report, "w") as fh:
-            json.dump(result.report(), fh, indent=1, default=str)
+        stop = StopConditions(duration=args.duration, cycles=args.cycles, idle_timeout=args.idle_timeout)
+        try:
+            result = run_live(source, live, stop, signals=signals, on_status=status,
+                              on_notice=lambda text: log.warning("%s", text))
+        except FileExistsError as exc:  # the recording of a wheel that appeared later
+            raise SystemExit(f"{prog}: {exc}; use --overwrite") from None
+        log.info("%s", result.reason)
+        log.info("%s", format_counters(result.source, result.estimation, result.latency))
+        if args.report:
+            report = result.report()
+            report["signals_ignored"] = signals.ignored
+            with open(args.report, "w") as fh:
+                json.dump(report, fh, indent=1, default=str)
+        if signals.ignored:
+            log.info("%d more stop signal(s) ignored while stopping (nothing was lost)", signals.ignored)
     return 0

@@ -44,6 +44,8 @@ from typing import Any
 
 import can
 
+from slipest.io.source import one_line
+
 __all__ = [
     "BusOpenError",
     "BusConfig",
@@ -330,7 +332,7 @@ class ReconnectingBus:
             try:
                 self._bus = self.config.open()
             except BusOpenError as exc:
-                self.last_error = str(exc)
+                self.last_error = one_line(str(exc))
                 self._next_try = now + self._backoff
                 self._backoff = min(self.max_backoff, self._backoff * 2)
                 return False
@@ -346,6 +348,7 @@ class ReconnectingBus:
             if self._bus is not bus or bus is None:
                 return  # another thread already handled it
             self.errors += 1
+            why = one_line(why)
             self.last_error = why
             self.on_event(f"CAN bus {self.config.describe()}: {why}; reconnecting")
             self._bus = None

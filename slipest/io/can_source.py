@@ -3,7 +3,9 @@
 :class:`CanSource` is the :class:`~slipest.io.source.Source` of a CAN
 bus: a reader thread receives with a
 :class:`~slipest.io.bus_args.ReconnectingBus` (errors are reported and
-counted, a dead socketcand server is reconnected when it is back),
+counted, a dead socketcand server is reconnected when it is back; each
+such event is one notice line, rate-limited as
+:meth:`~slipest.io.source.Source._notice` says),
 decodes with :class:`~slipest.io.can_messages.CanDecoder` (unknown IDs and
 bad frames counted and skipped) and queues the samples with the time they
 arrived (host monotonic clock).  :meth:`CanSource.publish` sends one
@@ -32,9 +34,12 @@ from slipest.io.can_messages import (
     SlipReferenceMessage,
     encode_slip_estimate,
 )
-from slipest.io.source import Source, SourceBatch
+from slipest.io.source import Source, SourceBatch, one_line_logs
 
-__all__ = ["CanSource", "add_record", "estimate_message"]
+__all__ = ["CanSource", "add_record", "estimate_message", "SOCKETCAND_LOGGER"]
+
+#: The logger of python-can's socketcand client (its receive errors embed a traceback: cut to one line).
+SOCKETCAND_LOGGER = "can.interfaces.socketcand.socketcand"
 
 
 def estimate_message(wheel: int, estimate):
@@ -76,7 +81,8 @@ class CanSource(Source):
         self.config = config
         self.decoder = decoder or CanDecoder()
         self.max_batch = max_batch
-        self.bus = ReconnectingBus(config, on_event=self._notice)
+        self.bus = ReconnectingBus(config, on_event=lambda text: self._notice(text, kind="bus"))
+        one_line_logs(SOCKETCAND_LOGGER)
         self.c = {"published": 0, "publish_failed": 0, "references_invalid": 0}
         self._lock = threading.Lock()
 
@@ -89,6 +95,7 @@ class CanSource(Source):
         c.pop("counter_gaps_by_wheel", None)
         c.update(self.c)
         c.update(self.bus.counters())
+        c["notices_suppressed"] = self.notices_suppressed
         return c
 
     def publish(self, wheel: int, estimate) -> bool:

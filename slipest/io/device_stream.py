@@ -6,38 +6,70 @@ turns them into the continuous ``t, az, theta`` stream the estimator and the
 log CSV take, and guarantees that nothing lost or corrupted is estimated
 from.  Each frame goes through these rules, in arrival order:
 
-* **Time.**  Absolute timestamps are taken as they are.  Wrapped ones
-  (``time_modulus``, CAN's ``TimeMod``) advance by ``(t - last) mod M``
-  plus a whole number ``k`` of periods ``M``; ``k`` runs up to what the
-  arrival times allow (times ``time_scale``), and the counter picks the
-  ``k`` whose number of lost frames matches its own jump (a receiver that
-  stalled and read a burst has a long arrival step but no lost frame), the
-  arrival time breaking ties.
+* **Time.**  Absolute timestamps are taken as they are (shifted once the
+  device's clock started again, below).  Wrapped ones (``time_modulus``,
+  CAN's ``TimeMod``) advance by ``(t - last) mod M`` plus a whole number
+  ``k`` of periods ``M``; the candidates are the steps within a second of
+  the arrival step (times ``time_scale``: a receiver is never a second
+  behind), and the counter picks the ``k`` whose number of lost frames
+  matches its own jump (a receiver that stalled and read a burst has a long
+  arrival step but no lost frame), the arrival time breaking ties.  When
+  none matches (within 2 frames) the device restarted: the step nearest
+  the arrival step is taken.
 * **Out-of-order frames.**  A frame whose time is not after the last
-  accepted one is a duplicate or a reordering: dropped (``out_of_order``).
+  accepted one is a duplicate or a reordering when it is less than a
+  second back and (with a counter) its counter went back as many frames as
+  its time did (within 2): dropped (``out_of_order``).  Otherwise, with
+  absolute timestamps, the device's clock started again (a restart, below).
 * **Lost frames.**  A forward jump of the counter by ``n + 1`` means ``n``
-  frames were lost (dropped, corrupted, or sent while the link was down).
-  Once the sample period is learnt, the jump is read together with the time
-  step, so an outage longer than the counter's range is still counted
-  right.  Without a counter (``seq_modulus=0``), losses are read from the
-  time step alone.  For each lost frame a sample with ``az = NaN`` is
-  inserted at its time (times and angles interpolated between the
-  neighbours; ``filled``), so the segmenter flags a cycle whose feature
-  window lost even one sample (quality ``"nan"``) and never estimates from
-  it.  One loss inserts at most ``max_fill`` evenly spaced samples (the
-  rest shows as a time gap).
-* **Restarts.**  A backward jump of the counter (serial-number arithmetic,
-  RFC 1982) with a later time is a device restart: the frame is taken, no
-  sample inserted (``restarts``).
+  frames were lost (dropped, corrupted, or sent while the link was down),
+  when the time step says so too.  Once the sample period is learnt, the
+  jump is read together with the time step: the counter's ``n`` plus the
+  whole number of counter ranges that brings it closest to the time step
+  (``time step / period - 1`` frames, the period being the average since
+  the start or the last restart), so an outage longer than the counter's
+  range is still counted right.  Without a counter (``seq_modulus=0``),
+  losses are read from the time step alone.  For each lost frame a sample
+  with ``az = NaN`` is inserted at its time (times and angles interpolated
+  between the neighbours; ``filled``), so the segmenter flags a cycle whose
+  feature window lost even one sample (quality ``"nan"``) and never
+  estimates from it.  One loss inserts at most ``max_fill`` evenly spaced
+  samples (the rest shows as a time gap).
+* **Restarts.**  A device that starts again counts from scratch: its
+  counter no longer follows its clock.  When the counter's jump and the time
+  step disagree (by more than 2 frames + 100 ppm of the time step, modulo the
+  counter's range), or the clock went back (above), the frame is a restart
+  (``restarts``): taken, no sample inserted, nothing counted as lost (the
+  segmenter flags a window the restart falls in: a time or angle gap).  A
+  clock that went back is shifted to go on from the last time by the
+  arrival step (times ``time_scale``; one period when unknown), so time
+  keeps increasing in the samples and the recording.  A restart is told
+  from an outage only as well as its counter disagrees: after a reboot
+  that resets a 16-bit counter, but for (5 + 2e-4 x the time step in
+  frames) chances in 65536; on CAN, whose 8-bit counter may agree by chance
+  (within 2: 5 chances in 256) with one of the two or three steps within a
+  second of the arrival step, a few restarts in a hundred are counted as an
+  outage.
+* **Late start.**  A device counts from 0 when it starts, so the first
+  frame's counter is how many frames were sent before it: missed by a
+  receiver that started after the device (``frames_missed_at_start``, also
+  after each restart; modulo the counter's range, so at least that many).
 * **Angle.**  Unwrapped, choosing the ``2 pi`` branch closest to the angle
   predicted from the recent leg speed (so an outage longer than half a turn
   is still unwrapped right when the speed is steady).
 * **Learning.**  A step of one frame (no loss, no restart) whose angle step
   is under 1 rad updates the sample period (``0.9 p + 0.1 dt``) and the leg
   speed (``0.8 w + 0.2 dtheta/dt``); the first such step sets both.
-* **Stuck sensor.**  ``az`` bit-identical over ``stuck_samples``
-  consecutive samples (a frozen sensor or a stuck driver; real noisy data
-  never repeats that long) is replaced by NaN from its first repeat on.
+* **Stuck sensor.**  ``az`` bit-identical over a run lasting ``stuck_time``
+  (:data:`STUCK_TIME`, 20 ms: 20 samples at 1 kHz), never fewer than
+  :data:`STUCK_MIN_SAMPLES` samples (a frozen sensor or a stuck driver) is
+  replaced by NaN from its first repeat on.  Noisy data repeats far less:
+  float32 values (serial) practically never; values in CAN's 0.005 m/s^2
+  steps, or an IMU's own ADC steps, repeat a sample with probability ``p``
+  of 0.01-0.15 (noise 10-1 mg), so a false alarm needs ``p**(n-1)``: never
+  within years for 20 samples; the floor keeps slow IMUs from false alarms
+  (``tools/stuck_threshold.py`` measures ``p`` and the false-alarm
+  intervals).
   Samples that repeat the previous ``az`` are held back until the run breaks
   (they are released unchanged) or reaches the threshold (released as NaN),
   so a stuck run is never handed on; normal data, which does not repeat, is
@@ -59,13 +91,24 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from itertools import repeat
 
 import numpy as np
 
-__all__ = ["WheelSamples", "WheelStream", "SEQ_MODULUS"]
+__all__ = ["STUCK_MIN_SAMPLES", "STUCK_TIME", "SEQ_MODULUS", "WheelSamples", "WheelStream", "stuck_run_length"]
 
 SEQ_MODULUS = 1 << 16
+#: [s] a run of bit-identical az lasting this long is a stuck sensor (see the module docstring).
+STUCK_TIME = 0.02
+#: ...but never fewer samples than this (at low IMU rates).
+STUCK_MIN_SAMPLES = 12
+#: [s] no link reorders frames by this much: a frame further back is a restarted clock.
+_REORDER_S = 1.0
+#: [s] wrapped times: a receiver is never this far behind the device, nor a frame this far ahead of its arrival.
+_MAX_LAG_S = 1.0
+#: Counter and time steps agree within this many frames (+ 100 ppm of the time step: clock drift) for a loss.
+_AGREE_FRAMES = 2
+#: Steps since the start or a restart before the average period is used for the time step.
+_LONG_MIN = 32
 _TWO_PI = 2.0 * math.pi
 _NAN = math.nan
 _FIELDS = ("t", "az", "theta", "slip", "filled", "intake")
@@ -129,6 +172,14 @@ class _Rows:
                             np.array(self.filled, bool), np.array(self.intake))
 
 
+def stuck_run_length(stuck_time: float, period: float | None) -> int:
+    """Samples of a run of identical ``az`` lasting ``stuck_time`` [s] at the sample ``period`` [s]
+    (None: unknown), never fewer than :data:`STUCK_MIN_SAMPLES`."""
+    if not period:
+        return STUCK_MIN_SAMPLES
+    return max(STUCK_MIN_SAMPLES, round(stuck_time / period))
+
+
 def _column(values, n: int):
     """``values`` as a sequence of ``n`` Python numbers (ValueError on another length)."""
     if isinstance(values, np.ndarray):
@@ -147,18 +198,28 @@ class WheelStream:
     then be given to :meth:`add`.  None: timestamps are absolute.
     ``time_scale``: device seconds per host second (the device's speed-up),
     to compare device time steps with arrival steps.  ``max_fill``: most
-    samples inserted for one loss.  ``stuck_samples``: run length of
-    identical ``az`` taken as a stuck sensor (0: never).
+    samples inserted for one loss.  ``stuck_time`` [s]: duration of a run of
+    identical ``az`` taken as a stuck sensor (0: never; see the module
+    docstring); ``stuck_samples``: a fixed run length in samples instead (0:
+    never).  :attr:`events` collects, for people, the restarts and late
+    starts seen (the caller takes them).
     """
 
     def __init__(self, wheel: int = 0, *, seq_modulus: int = SEQ_MODULUS, time_modulus: float | None = None,
-                 time_scale: float = 1.0, max_fill: int = 10000, stuck_samples: int = 50):
+                 time_scale: float = 1.0, max_fill: int = 10000, stuck_samples: int | None = None,
+                 stuck_time: float = STUCK_TIME):
         self.wheel = wheel
         self.time_scale = time_scale
         self.seq_modulus = seq_modulus
         self.time_modulus = time_modulus
         self.max_fill = max_fill
         self.stuck_samples = stuck_samples
+        self.stuck_time = stuck_time
+        self._stuck_on = bool(stuck_samples) if stuck_samples is not None else bool(stuck_time)
+        self.events: list[str] = []
+        self._t_offset = 0.0  # added to absolute device times once the device's clock started again
+        self._anchor_t = 0.0  # time of the first frame since the start or the last restart [s]
+        self._anchor_steps = 0  # sample periods since then (received and lost frames)
         self._last_seq: int | None = None
         self._last_t: float | None = None
         self._last_theta: float | None = None  # unwrapped
@@ -179,6 +240,7 @@ class WheelStream:
             "samples_filled": 0,
             "out_of_order": 0,
             "restarts": 0,
+            "frames_missed_at_start": 0,
             "stuck_runs": 0,
             "stuck_samples": 0,
             "references": 0,
@@ -254,22 +316,32 @@ class WheelStream:
     def _frame(self, seq, t, az, theta, intake, out: _Rows) -> None:
         if self.time_modulus:
             t = self._unwrap_time(t, intake, seq)
+        else:
+            t += self._t_offset
         last_t = self._last_t
         if last_t is None:
             th = theta
+            self._begin(seq, t, out, None)
         else:
+            clock_restarted = False
             if t <= last_t:
-                self.c["out_of_order"] += 1
-                return
+                if self.time_modulus or not self._clock_restarted(seq, last_t - t):
+                    self.c["out_of_order"] += 1
+                    return
+                t = self._shift_clock(t, intake)
+                clock_restarted = True
             last_th = self._last_theta
             th = theta + _TWO_PI * round((last_th + self._omega * (t - last_t) - theta) / _TWO_PI)
-            gap = self._gap(seq, t - last_t)
+            gap = None if clock_restarted else self._gap(seq, t - last_t)
             if gap is None:
                 self.c["restarts"] += 1
-            elif gap:
-                self._fill(gap, t, th, out)
-            elif -1.0 < th - last_th < 1.0:
-                self._learn(t - last_t, th - last_th)
+                self._begin(seq, t, out, t - last_t)
+            else:
+                self._anchor_steps += gap + 1
+                if gap:
+                    self._fill(gap, t, th, out)
+                elif -1.0 < th - last_th < 1.0:
+                    self._learn(t - last_t, th - last_th)
         self._last_seq = seq
         self._last_t = t
         self._last_theta = th
@@ -294,7 +366,7 @@ class WheelStream:
             base = np.mod(np.diff(traw, prepend=self._last_raw_t), m)
             t_all = np.cumsum(np.concatenate(([last_t], base)))  # as _unwrap_time adds step after step
         else:
-            t_all = np.concatenate(([last_t], traw))
+            t_all = np.concatenate(([last_t], traw + self._t_offset))
         t = t_all[1:]
         dt = np.diff(t_all)
         # the angle branches, supposing every frame plain; checked below with the leg speed _frame would use
@@ -321,7 +393,7 @@ class WheelStream:
                 arrival = np.diff(intake, prepend=self._last_intake) * self.time_scale
                 ok &= np.isfinite(intake) & (np.round(base / p) == 1)
                 ok &= np.abs(base - arrival) / m <= (base + m - arrival) / m
-            if self.stuck_samples:
+            if self._stuck_on:
                 ok &= az != np.concatenate(([self._prev_az], az[:-1]))
         n = int(ok.size if ok.all() else np.argmin(ok))
         if n == 0:
@@ -334,6 +406,7 @@ class WheelStream:
         received = np.flatnonzero(np.isfinite(intake[:n]))
         if received.size:
             self._last_intake = float(intake[received[-1]])
+        self._anchor_steps += n
         self._fast_frames += n
         return WheelSamples(t[:n], az[:n].copy(), th[:n], np.full(n, self._slip), np.zeros(n, bool),
                             intake[:n].copy())
@@ -354,24 +427,33 @@ class WheelStream:
             sm = self.seq_modulus
             gap = (seq - self._last_seq - 1) % sm
         best_score, best_step, k = math.inf, base, 0
+        nearest_lag, nearest_step = math.inf, base  # the candidate closest to the arrival step
         while True:  # candidates k = 0, 1, ... up to what the arrival times allow
             step = base + k * m
-            score = abs(step - arrival) / m if timed else float(k)
-            if counted:
-                d = (round(step / period) - 1 - gap) % sm
-                score += 1000.0 * (d if d <= sm - d else sm - d)
-            if score < best_score:
-                best_score, best_step = score, step
+            lag = abs(step - arrival) if timed else 0.0
+            if lag < nearest_lag:
+                nearest_lag, nearest_step = lag, step
+            if lag <= _MAX_LAG_S:  # a receiver is never further behind (or a frame further ahead)
+                score = lag / m if timed else float(k)
+                if counted:
+                    d = (round(step / period) - 1 - gap) % sm
+                    score += 1000.0 * (d if d <= sm - d else sm - d)
+                if score < best_score:
+                    best_score, best_step = score, step
             # no later candidate can score lower: its time term alone is at least this
             if best_score <= ((step + m - arrival) / m if timed else k + 1.0):
                 break
             k += 1
             if k > 1 + (int(max(0.0, arrival - base) // m) + 1 if timed else 0):
                 break
+        if timed and best_score > 1000.0 * (_AGREE_FRAMES + 0.5):
+            # no step the arrival times allow agrees with the counter: a restart (see _gap), at the arrival step
+            return self._last_t + nearest_step
         return self._last_t + best_step
 
     def _gap(self, seq, dt: float) -> int | None:
-        """Frames lost before this one, ``dt`` [s] after the last (None: a restart, not a loss)."""
+        """Frames lost before this one, ``dt`` [s] after the last (None: a restart, not a loss).
+        Changes no state (the vectorised run skips it for plain frames, where it gives 0)."""
         period = self._period
         if seq is None:
             return 0 if period is None else max(0, round(dt / period) - 1)
@@ -379,13 +461,52 @@ class WheelStream:
         gap = (seq - self._last_seq - 1) % m
         if period is None:
             return None if gap >= m // 2 else gap
+        steps = self._anchor_steps
+        if steps >= _LONG_MIN:  # the average period since the start: exact over long outages
+            average = (self._last_t - self._anchor_t) / steps
+            if abs(average - period) <= 0.05 * period:  # else the rate changed: the recent period
+                period = average
         by_time = round(dt / period) - 1
-        k = round((by_time - gap) / m)
-        if k >= 1:
-            return gap + k * m  # the counter wrapped during the outage
-        if gap >= m // 2 and by_time < m // 4:
-            return None
-        return gap
+        k = max(0, round((by_time - gap) / m))  # counter ranges that went by unseen
+        if abs(by_time - gap - k * m) <= min(_AGREE_FRAMES + 1e-4 * abs(by_time), m / 4):
+            return gap + k * m
+        return None  # the counter and the clock disagree: the device started again
+
+    def _clock_restarted(self, seq, back: float) -> bool:
+        """Whether a frame ``back`` [s] before the last one (absolute times) comes from a clock that
+        started again, rather than being a duplicate or a reordering."""
+        if back >= _REORDER_S:
+            return True
+        if seq is None or self._period is None:
+            return False
+        went_back = (self._last_seq - seq) % self.seq_modulus
+        return abs(went_back - round(back / self._period)) > _AGREE_FRAMES
+
+    def _shift_clock(self, t: float, intake: float) -> float:
+        """The time [s] of the first frame of a restarted clock: the last time plus the arrival step
+        (one period when unknown); the frames that follow are shifted by as much."""
+        step = self._period or 1e-6
+        if intake == intake and self._last_intake is not None:
+            step = max(step, (intake - self._last_intake) * self.time_scale)
+        shifted = self._last_t + step
+        self._t_offset += shifted - t
+        return shifted
+
+    def _begin(self, seq, t: float, out: _Rows, after: float | None) -> None:
+        """The first frame of the stream (``after`` None) or of a restart, ``after`` [s] after the last."""
+        self._anchor_t, self._anchor_steps = t, 0
+        missed = seq or 0  # frames the device counted before this one
+        self.c["frames_missed_at_start"] += missed
+        before = f": at least {missed} frame(s) were sent before it, missed" if missed else ""
+        if after is None:
+            if missed:
+                self.events.append(f"first frame has counter {seq}{before} (started after the device)")
+            return
+        self._release(out, False)  # a repeating run does not go on across a restart
+        self._stuck = False
+        self._prev_az = _NAN
+        self.events.append(f"the device restarted (counter {seq} {after:.3g} s after the last frame{before}); "
+                           "not counted as lost")
 
     def _learn(self, dt: float, dtheta: float) -> None:
         if self._period is None:
@@ -417,7 +538,7 @@ class WheelStream:
 
     def _sample(self, t: float, az: float, th: float, intake: float, out: _Rows) -> None:
         """A received sample through the stuck-sensor rule."""
-        if not self.stuck_samples or az != self._prev_az:
+        if not self._stuck_on or az != self._prev_az:
             if self._held:
                 self._release(out, False)
             self._stuck = False
@@ -428,11 +549,16 @@ class WheelStream:
             out.append(t, _NAN, th, self._slip, False, intake)
         else:
             self._held.append((t, az, th, self._slip, intake))
-            if len(self._held) + 1 >= self.stuck_samples:  # the first of the run was already released
+            if len(self._held) + 1 >= self._stuck_length():  # the first of the run was already released
                 self._stuck = True
                 self.c["stuck_runs"] += 1
                 self.c["stuck_samples"] += len(self._held)
                 self._release(out, True)
+
+    def _stuck_length(self) -> int:
+        if self.stuck_samples is not None:
+            return self.stuck_samples
+        return stuck_run_length(self.stuck_time, self._period)
 
     def _release(self, out: _Rows, as_nan: bool) -> None:
         for t, az, th, slip, intake in self._held:

@@ -14,7 +14,11 @@ unplugged, a pseudo-terminal's master closed: the read raises
 frame, and tries to open the same path again every ``reopen_interval``
 seconds until it is back.  Everything is counted
 (:meth:`SerialSource.counters`): the decoder's counters plus ``opens``,
-``disconnects``, ``reopen_attempts`` and ``read_errors``.
+``disconnects``, ``reopen_attempts``, ``read_errors`` and
+``notices_suppressed``.  A port that keeps going away and coming back
+(a device that opens and closes, a path that points at a dead pty) says so
+three times, then once per ten seconds with the number left out
+(:meth:`~slipest.io.source.Source._notice`).
 """
 
 from __future__ import annotations
@@ -59,6 +63,7 @@ class SerialSource(Source):
     def counters(self) -> dict:
         c = self.decoder.counters()
         c.update(self.c)
+        c["notices_suppressed"] = self.notices_suppressed
         return c
 
     # -- the link ----------------------------------------------------------------------
@@ -85,7 +90,7 @@ class SerialSource(Source):
             self.c["reopen_attempts"] += 1
             try:
                 self._open_once()
-                self._notice(f"{self.port}: reopened")
+                self._notice(f"{self.port}: reopened", kind="reopened")
             except (serial.SerialException, OSError):
                 self._stop.wait(self.reopen_interval)
             return None
@@ -105,7 +110,7 @@ class SerialSource(Source):
         self.c["disconnects"] += 1
         self.c["read_errors"] += 1
         self.last_error = str(exc)
-        self._notice(f"{self.port}: disconnected ({exc}); reopening")
+        self._notice(f"{self.port}: disconnected ({exc}); reopening", kind="disconnected")
         self._release()
         self.decoder.reset()  # the partial frame is gone; counters are kept
 

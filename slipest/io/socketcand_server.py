@@ -41,8 +41,21 @@ Delivery: one write per receiving client per received TCP chunk.  A client
 that does not read fills its kernel send buffer (``sndbuf``, 256 KiB) and
 then the server's queue for it; beyond ``max_client_buffer`` bytes (4 MiB)
 it loses frames (``frames_dropped``), like a CAN controller's receive
-overflow, so one stuck client never stalls the bus or grows memory without
-bound.  The
+overflow, so one stuck client never stalls the bus.  Memory has a total
+budget too:
+
+* at most ``max_buffer`` bytes (32 MiB) queued for all clients together;
+  past it the client with the most bytes queued (the slowest) is
+  disconnected (``clients_dropped``), then the next, until the queues fit;
+* at most ``max_clients`` connections (256); past it a new one takes the
+  place of the slowest client if one has bytes queued (dropped), else it is
+  answered ``< error too many clients >`` and closed (``clients_refused``).
+
+A client that reads keeps an empty queue and is never the one dropped: with
+200 clients that never read, the server stays within its budget and the
+others lose nothing (``tools/bench_can_clients.py``; the process's memory
+grows by about 2.5 times the bytes queued plus 20 MB: the allocator's
+overhead).  The
 python-can client compares its whole first ``recv`` with ``< ok >`` after
 ``< rawmode >``, so a frame glued to that ``ok`` would make its constructor
 fail; frames for a new raw-mode client are therefore held for ``join_grace``
@@ -80,6 +93,8 @@ from typing import Callable, Iterable
 __all__ = [
     "DEFAULT_PORT",
     "DEFAULT_CHANNEL",
+    "DEFAULT_MAX_BUFFER",
+    "DEFAULT_MAX_CLIENTS",
     "MAX_COMMAND_LEN",
     "SocketcandServer",
     "ServerThread",
@@ -96,6 +111,10 @@ DEFAULT_CHANNEL = "vcan0"
 #: Longest ``< ... >`` command accepted [bytes]; longer ones are dropped.
 MAX_COMMAND_LEN = 256
 _DEFAULT_MAX_CLIENT_BUFFER = 4 * 1024 * 1024  # [bytes]
+#: Bytes queued for all clients together, by default (see the module docstring).
+DEFAULT_MAX_BUFFER = 32 * 1024 * 1024
+#: Connections at once, by default.
+DEFAULT_MAX_CLIENTS = 256
 _DEFAULT_JOIN_GRACE = 0.02  # [s]
 _DEFAULT_SNDBUF = 256 * 1024  # [bytes]
 
@@ -131,19 +150,26 @@ class _Client(asyncio.Protocol):
         self._pending: list[tuple[bytes, int]] | None = None  # held frames during join_grace
         self._pending_bytes = 0
         self._join_timer: asyncio.TimerHandle | None = None
+        self.accepted = False  # counted among the clients (not refused)
+        self.queued = 0  # bytes queued for it in the server, as last seen [bytes]
 
     # -- asyncio callbacks -----------------------------------------------------
     def connection_made(self, transport) -> None:
         self.transport = transport
         peer = transport.get_extra_info("peername")
         self.peer = f"{peer[0]}:{peer[1]}" if peer else "?"
+        if not self.server._connected(self):
+            transport.write(b"< error too many clients >")
+            transport.close()
+            return
         sock = transport.get_extra_info("socket")
         if sock is not None and self.server.sndbuf:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.server.sndbuf)
-        self.server._connected(self)
         transport.write(b"< hi >")
 
     def data_received(self, data: bytes) -> None:
+        if not self.accepted:
+            return
         buf = self._buf
         buf += data
         out: list[bytes] = []
@@ -240,6 +266,13 @@ class _Client(asyncio.Protocol):
         pending, self._pending, self._pending_bytes = self._pending, None, 0
         if pending:
             self._write(b"".join(p for p, _ in pending))
+        self._requeue()
+
+    def _requeue(self) -> None:
+        """Tell the server how many bytes wait for this client now (its queue and held frames)."""
+        t = self.transport
+        size = self._pending_bytes + (t.get_write_buffer_size() if t is not None and not t.is_closing() else 0)
+        self.server._queued(self, size)
 
     def deliver(self, data: bytes, n_frames: int) -> bool:
         """Queue frames for this client; False when dropped (client too slow)."""
@@ -249,11 +282,13 @@ class _Client(asyncio.Protocol):
                 return False
             self._pending.append((data, n_frames))
             self._pending_bytes += len(data)
+            self._requeue()
             return True
         t = self.transport
         if t is None or t.is_closing() or t.get_write_buffer_size() + len(data) > limit:
             return False
-        t.write(data)
+        t.write(data)  # sent at once when the kernel takes it: nothing stays queued for a client that reads
+        self._requeue()
         return True
 
 
@@ -300,18 +335,28 @@ class SocketcandServer:
         socket, so that a stuck client holds at most about ``sndbuf +
         max_client_buffer`` bytes (Linux otherwise lets it grow to ~4 MB);
         None leaves the kernel's autotuning.
+    :param max_clients: connections at once; more are refused.
+    :param max_buffer: [bytes] data queued in the server for all clients
+        together, above which the slowest clients are disconnected.
     """
 
     def __init__(self, *, channels: Iterable[str] | None = None, join_grace: float = _DEFAULT_JOIN_GRACE,
                  max_client_buffer: int = _DEFAULT_MAX_CLIENT_BUFFER,
-                 sndbuf: int | None = _DEFAULT_SNDBUF) -> None:
+                 sndbuf: int | None = _DEFAULT_SNDBUF, max_clients: int = DEFAULT_MAX_CLIENTS,
+                 max_buffer: int = DEFAULT_MAX_BUFFER) -> None:
+        if int(max_clients) < 1 or int(max_buffer) < 1 or int(max_client_buffer) < 1:
+            raise ValueError(f"max_clients={max_clients}, max_buffer={max_buffer} and "
+                             f"max_client_buffer={max_client_buffer} must be positive")
         self.channels = None if channels is None else frozenset(channels)
         self.join_grace = float(join_grace)
         self.max_client_buffer = int(max_client_buffer)
         self.sndbuf = None if sndbuf is None else int(sndbuf)
+        self.max_clients = int(max_clients)
+        self.max_buffer = int(max_buffer)
         self.counters = {
             "clients": 0, "clients_total": 0, "frames_in": 0, "frames_out": 0,
             "frames_dropped": 0, "bad_commands": 0, "garbage_bytes": 0,
+            "clients_refused": 0, "clients_dropped": 0, "bytes_queued": 0, "bytes_queued_peak": 0,
         }
         self._clients: set[_Client] = set()
         self._raw: dict[str, set[_Client]] = {}
@@ -350,18 +395,57 @@ class SocketcandServer:
         return snap
 
     # -- called by _Client -----------------------------------------------------
-    def _connected(self, client: _Client) -> None:
+    def _connected(self, client: _Client) -> bool:
+        """Count a new connection; False when it is one too many (refused).  At the limit it takes the
+        place of the slowest client if one has bytes queued (that one is dropped)."""
+        if len(self._clients) >= self.max_clients:
+            slowest = max(self._clients, key=lambda cl: cl.queued, default=None)
+            if slowest is None or slowest.queued == 0:
+                self.counters["clients_refused"] += 1
+                log.info("client %s refused: %d clients already", client.peer, len(self._clients))
+                return False
+            self._drop(slowest, f"to make room for {client.peer} ({self.max_clients} clients at most)")
+        client.accepted = True
         self._clients.add(client)
         self.counters["clients"] += 1
         self.counters["clients_total"] += 1
         log.info("client %s connected", client.peer)
+        return True
 
     def _disconnected(self, client: _Client) -> None:
+        self._forget(client)
+        log.info("client %s disconnected", client.peer)
+
+    def _forget(self, client: _Client) -> None:
         self._leave(client)
+        self._queued(client, 0)
         if client in self._clients:
             self._clients.discard(client)
             self.counters["clients"] -= 1
-        log.info("client %s disconnected", client.peer)
+
+    def _drop(self, client: _Client, why: str) -> None:
+        """Disconnect a slow client now (its queue goes with the connection), counted."""
+        log.info("client %s dropped with %d bytes queued: %s", client.peer, client.queued, why)
+        self.counters["clients_dropped"] += 1
+        self._forget(client)
+        if client.transport is not None:
+            client.transport.abort()
+
+    def _queued(self, client: _Client, size: int) -> None:
+        c = self.counters
+        c["bytes_queued"] += size - client.queued
+        client.queued = size
+        if c["bytes_queued"] > c["bytes_queued_peak"]:
+            c["bytes_queued_peak"] = c["bytes_queued"]
+
+    def _shed(self) -> None:
+        """Disconnect the clients with the most bytes queued until the queues fit ``max_buffer``."""
+        c = self.counters
+        while c["bytes_queued"] > self.max_buffer:
+            slowest = max(self._clients, key=lambda cl: cl.queued, default=None)
+            if slowest is None or slowest.queued == 0:
+                return
+            self._drop(slowest, f"over the budget of {self.max_buffer} bytes queued for all clients")
 
     def _join(self, client: _Client) -> None:
         client._start_grace(self.join_grace)
@@ -375,13 +459,16 @@ class SocketcandServer:
     def _broadcast(self, sender: _Client, data: bytes, n_frames: int) -> None:
         c = self.counters
         c["frames_in"] += n_frames
-        for peer in self._raw.get(sender.channel, ()):
-            if peer is sender:
+        members = self._raw.get(sender.channel, ())
+        for peer in list(members):
+            if peer is sender or peer not in members:  # (dropped for the budget meanwhile)
                 continue
             if peer.deliver(data, n_frames):
                 c["frames_out"] += n_frames
             else:
                 c["frames_dropped"] += n_frames
+            if c["bytes_queued"] > self.max_buffer:  # over by one delivery at most
+                self._shed()
 
 
 async def _serve(host: str, port: int, stop: asyncio.Event, on_ready: Callable | None, server: SocketcandServer):
@@ -405,18 +492,26 @@ def run_server(host: str = "127.0.0.1", port: int = DEFAULT_PORT, *,
     """
     server = SocketcandServer(**server_kwargs)
 
+    plain: dict = {}  # signal -> previous handler, where the loop cannot take signals itself
+
     async def _main():
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
-                loop.add_signal_handler(sig, stop.set)
+                try:
+                    loop.add_signal_handler(sig, stop.set)
+                except NotImplementedError:  # Windows' event loops: a plain handler that wakes the loop
+                    plain[sig] = signal.signal(sig, lambda signum, frame: loop.call_soon_threadsafe(stop.set))
         return await _serve(host, port, stop, on_ready, server)
 
     try:
         return asyncio.run(_main())
     except KeyboardInterrupt:
         return server.stats()
+    finally:
+        for sig, handler in plain.items():
+            signal.signal(sig, handler)
 
 
 class ServerThread:

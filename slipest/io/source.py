@@ -20,16 +20,66 @@ A subclass implements :meth:`Source.describe`, :meth:`Source.counters`,
 wait at most about 0.2 s for data, hand frames on with ``_put`` and events
 with ``_notice``; False to end the thread), and may override
 ``_interrupt()`` (wake a blocked read) and ``_release()`` (close the link).
+
+Notices are for people: one line each (a library's embedded traceback is
+cut off: :func:`one_line`), and those of one ``kind`` (a link that goes
+down and comes back, again and again) are rate-limited: three at once, then
+one per ten seconds, the next one saying how many were left out
+(``notices_suppressed``; the link's own counters count every event).
 """
 
 from __future__ import annotations
 
 import abc
+import logging
 import queue
 import threading
+import time
 from dataclasses import dataclass
 
-__all__ = ["Source", "SourceBatch", "drain"]
+__all__ = ["Source", "SourceBatch", "drain", "one_line", "one_line_logs"]
+
+#: Notices of one kind: this many at once, then one per :data:`NOTICE_INTERVAL` seconds.
+NOTICE_BURST = 3
+#: [s] see :data:`NOTICE_BURST`.
+NOTICE_INTERVAL = 10.0
+
+
+def one_line(text: str) -> str:
+    """``text`` on one line for people: without the tracebacks embedded in it (python-can's socketcand
+    client puts ``traceback.format_exc()`` into its error messages: the block from ``Traceback (most
+    recent call last):`` to its exception line goes, what follows stays), whitespace runs as one space."""
+    kept = []
+    rest = text
+    while True:
+        head, found, tail = rest.partition("Traceback (most recent call last):")
+        kept.append(head)
+        if not found:
+            break
+        lines = tail.split("\n")
+        i = 1
+        while i < len(lines) and (lines[i][:1] in (" ", "\t") or not lines[i].strip()):
+            i += 1  # the frames of the traceback
+        rest = "\n".join(lines[i + 1:])  # past its exception line
+    return " ".join("".join(kept).split()).replace(" ;", ";")
+
+
+class _OneLineRecords(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        if isinstance(record.msg, str) and "Traceback (most recent call last)" in record.msg:
+            record.msg, record.args = one_line(record.getMessage()), ()
+        return True
+
+
+_ONE_LINE = _OneLineRecords()
+
+
+def one_line_logs(logger_name: str) -> None:
+    """Records of the logger ``logger_name`` whose message embeds a traceback are cut to one line (e.g.
+    python-can's socketcand client logs ``Failed to receive: ... Traceback ...`` when its server dies)."""
+    logger = logging.getLogger(logger_name)
+    if _ONE_LINE not in logger.filters:
+        logger.addFilter(_ONE_LINE)
 
 
 @dataclass
@@ -81,6 +131,9 @@ class Source(abc.ABC):
         self._thread: threading.Thread | None = None
         self.ended = threading.Event()
         self.last_error: str | None = None
+        self.notices_suppressed = 0
+        self._notice_budget: dict[str, list] = {}  # kind -> [tokens, time, left out, last left out]
+        self._notice_lock = threading.Lock()  # notices come from the reader thread and from senders
 
     # -- what a link implements -------------------------------------------------------
     @abc.abstractmethod
@@ -109,7 +162,24 @@ class Source(abc.ABC):
     def _put(self, batch: SourceBatch) -> None:
         self._batches.put(batch)
 
-    def _notice(self, text: str) -> None:
+    def _notice(self, text: str, kind: str | None = None) -> None:
+        """A notice for people (one line); ``kind``: rate-limited with the others of that kind."""
+        text = one_line(text)
+        if kind is not None:
+            with self._notice_lock:
+                now = time.monotonic()
+                budget = self._notice_budget.setdefault(kind, [float(NOTICE_BURST), now, 0, ""])
+                budget[0] = min(float(NOTICE_BURST), budget[0] + (now - budget[1]) / NOTICE_INTERVAL)
+                budget[1] = now
+                if budget[0] < 1.0:
+                    budget[2] += 1
+                    budget[3] = text
+                    self.notices_suppressed += 1
+                    return
+                budget[0] -= 1.0
+                left_out, budget[2] = budget[2], 0
+            if left_out:
+                text += f" ({left_out} more like it not shown)"
         self._notices.put(text)
 
     def _run(self) -> None:
@@ -148,12 +218,17 @@ class Source(abc.ABC):
         return drain(self._notices, 0)
 
     def close(self) -> None:
-        """Stop reading and close the link (idempotent)."""
+        """Stop reading and close the link (idempotent); notices left out are summed up (one per kind)."""
         self._stop.set()
         self._interrupt()
         if self._thread is not None:
             self._thread.join(timeout=2.0)
         self._release()
+        with self._notice_lock:
+            for budget in self._notice_budget.values():
+                if budget[2]:
+                    self._notices.put(f"{budget[2]} more like this not shown, the last: {budget[3]}")
+                    budget[2] = 0
 
     def __enter__(self) -> "Source":
         return self

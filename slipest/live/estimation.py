@@ -5,9 +5,11 @@ delivers (any wheel, in arrival order), turns each wheel's frames into
 samples with that source's wire facts (a
 :class:`~slipest.io.device_stream.WheelStream` per wheel: lost frames become
 NaN samples so their cycles are flagged, stuck sensors are caught, wrapped
-counters and times are unwrapped), runs one estimator per wheel, records the
-samples when asked (:mod:`slipest.live.recording`), and reports every
-estimate to a callback (print it, publish it on the bus...).  It keeps
+counters and times are unwrapped, device restarts and frames missed by a
+late start are told apart from losses), runs one estimator per wheel,
+records the samples when asked (:mod:`slipest.live.recording`), and reports
+every estimate to a callback (print it, publish it on the bus...).  What
+people should hear of (a restart, a late start) waits in :meth:`notices`.  It keeps
 counters and two latencies: from a cycle's closing sample arriving to its
 estimate being ready, and (for firmware-sim on this host, ``sim_speed``)
 from each sample's instant on the device to its arrival.
@@ -27,7 +29,7 @@ from typing import Callable
 
 import numpy as np
 
-from slipest.io.device_stream import WheelSamples, WheelStream
+from slipest.io.device_stream import STUCK_TIME, WheelSamples, WheelStream
 from slipest.latency import latency_summary
 from slipest.live.recording import Recorder
 
@@ -57,9 +59,11 @@ class LiveEstimation:
     options (``n_legs``, ``method``, ``soil``, ``use_reference``, ``model``)
     are those of :class:`~slipest.online.SlipEstimator`, or
     ``estimator_factory(wheel)`` makes each wheel's estimator.  ``wheels``:
-    estimate only these (None: every wheel seen).  ``stuck_samples``: see
-    :class:`~slipest.io.device_stream.WheelStream`.  ``sim_speed``: the
-    device is firmware-sim on this host at this speed (its timestamps are
+    estimate only these (None: every wheel seen).  ``stuck_time`` [s] and
+    ``stuck_samples``: the stuck-sensor rule of
+    :class:`~slipest.io.device_stream.WheelStream` (a run of identical
+    ``az`` lasting ``stuck_time``; or of ``stuck_samples`` samples when
+    given; 0: off).  ``sim_speed``: the device is firmware-sim on this host at this speed (its timestamps are
     this host's monotonic clock times the speed): device-to-intake latency
     is measured and wrapped times are unwrapped knowing the speed-up.
     ``record``: record the samples (see :class:`~slipest.live.recording.Recorder`;
@@ -72,9 +76,10 @@ class LiveEstimation:
     """
 
     def __init__(self, source, *, n_legs: int = 4, method: str | None = None, soil: dict | None = None,
-                 use_reference: bool = False, model=None, wheels: list[int] | None = None, stuck_samples: int = 50,
-                 sim_speed: float | None = None, record: str | None = None, overwrite: bool = False,
-                 on_estimate: Callable | None = None, estimator_factory: Callable | None = None):
+                 use_reference: bool = False, model=None, wheels: list[int] | None = None,
+                 stuck_samples: int | None = None, stuck_time: float = STUCK_TIME, sim_speed: float | None = None,
+                 record: str | None = None, overwrite: bool = False, on_estimate: Callable | None = None,
+                 estimator_factory: Callable | None = None):
         self.seq_modulus = int(source.seq_modulus)
         self.time_modulus = source.time_modulus
         self.time_unit = float(source.time_unit)
@@ -85,6 +90,7 @@ class LiveEstimation:
         self.model = model  # the inverse model (FeatureSurrogate) of the default method; None: the shipped one
         self.only_wheels = set(wheels) if wheels else None
         self.stuck_samples = stuck_samples
+        self.stuck_time = stuck_time
         self.sim_speed = sim_speed
         self.on_estimate = on_estimate or (lambda wheel, est, info: None)
         self._factory = estimator_factory or self._default_factory
@@ -96,6 +102,7 @@ class LiveEstimation:
         self._estimate_latency: list[float] = []
         self._spare = None
         self.last_error: str | None = None
+        self._notices: list[str] = []
 
     def warmup(self) -> float:
         """Get the estimator's one-time costs (loading the model, compiled
@@ -136,7 +143,8 @@ class LiveEstimation:
         if self.only_wheels is not None and wheel not in self.only_wheels:
             return None
         stream = WheelStream(wheel, seq_modulus=self.seq_modulus, time_modulus=self.time_modulus,
-                             time_scale=self.sim_speed or 1.0, stuck_samples=self.stuck_samples)
+                             time_scale=self.sim_speed or 1.0, stuck_samples=self.stuck_samples,
+                             stuck_time=self.stuck_time)
         estimator, self._spare = (self._spare, None) if self._spare is not None else (self._factory(wheel), None)
         if self.recorder is not None:
             self.recorder.open_wheel(wheel)
@@ -191,6 +199,14 @@ class LiveEstimation:
         if self.sim_speed:
             self._measure_intake(np.asarray(t, np.float64), np.asarray(intake, np.float64))
         self._push(wheel, st, st.stream.add(seq, t, az, theta, intake))
+        if st.stream.events:
+            self._notices += [f"wheel {wheel}: {text}" for text in st.stream.events]
+            st.stream.events.clear()
+
+    def notices(self) -> list[str]:
+        """Events for people since the last call (a device restart, frames a late start missed)."""
+        out, self._notices = self._notices, []
+        return out
 
     def _measure_intake(self, t, intake) -> None:
         s = self.sim_speed

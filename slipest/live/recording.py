@@ -83,10 +83,10 @@ class Recorder:
         for wheel, pending in self._pending.items():
             if pending:
                 s = WheelSamples.concatenate(pending)
+                pending.clear()  # taken before writing: whatever happens, no row is ever written twice
                 writer = self._writers[wheel]
                 writer.write(s.t, s.az, s.theta, s.slip)
                 writer.flush()
-                pending.clear()
 
     def rows(self, wheel: int) -> int | None:
         """Rows written for the wheel so far (None: not recorded)."""
