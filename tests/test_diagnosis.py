@@ -273,6 +273,31 @@ def test_cli_writes_the_json_keys(tmp_path, capsys):
         main(["diagnose", str(bare), "--no-progress"])
 
 
+def test_a_recording_without_reference_slip_is_named_as_such(tmp_path, capsys):
+    """A live recording's `slip` column is NaN unless the device sent references: say so, not 'no cycle'."""
+    from slipest.cli.main import main
+    from slipest.io.log_csv import LogWriter
+
+    s = _log(np.repeat([0.2, 0.3], 3))
+    live = tmp_path / "live.csv"
+    with LogWriter(live, ("t", "az", "theta", "slip"), metadata={"nL": 4}) as w:  # as slipest.live.Recorder writes
+        w.write(s.t, s.az, s.theta, np.full(s.t.size, np.nan))
+    with pytest.raises(SystemExit) as exc:
+        main(["diagnose", str(live), "--no-progress"])
+    msg = str(exc.value)
+    assert f"{live}: the reference slip is missing" in msg and "'slip' column" in msg and "all NaN" in msg
+    assert "--send-reference" in msg and "slipest replay" in msg
+    assert "no complete leg cycle" not in msg
+    # a reference only before the first midstance: every complete cycle lacks it
+    early = np.where(s.t < 0.5, 0.2, np.nan)
+    with pytest.raises(ValueError, match=r"reference slip is missing: no complete leg cycle has a value in the "
+                       r"'slip' column at its midstance \(6 no reference slip of 6 cycles\)"):
+        cut_cycles(s.t, s.az, s.theta, early, 4)
+    # the other failure still points at the angle convention, with the counts
+    with pytest.raises(ValueError, match=r"no complete leg cycle in the log \(.*incomplete.* check nL=4"):
+        cut_cycles(s.t[:200], s.az[:200], s.theta[:200], s.slip[:200], 4)
+
+
 def test_end_to_end_names_a_strong_effect():
     soil = {"kS": 900.0, "phiS": 0.58, "phiD": 0.40, "kappa": 0.32}
     slips = np.repeat([0.1, 0.2, 0.3, 0.4, 0.5], 2)

@@ -3,14 +3,14 @@
 
 (a) slip 0.5 / 0.25 / 0.125; (b) kS 1.5 / 1.0 / 0.5 kN/m; (c) phiS 0.70 /
 0.52 / 0.35 rad with phiD = 0.30 rad. Everything not varied is the project's
-default model (``shared/spec/stickslip-model.md`` section 3: i = 0.25,
+default model (``docs/model.md`` section 3: i = 0.25,
 kS = 1000 N/m, phiS = 0.52, phiD = 0.35, kappa = 0.3). x: leg angle theta
 [rad] over [0, pi/4]; y: gravity-free hub vertical acceleration [g] within
 +-1 g like the thesis (curves that leave that band are clipped by the axes;
 the legend gives each curve's full ``Da``).
 
 Prints each case's ``Da`` [g] and first break-away angle [rad] beside the
-spec's reference values (section 4, dt = 1e-4 s) with the relative error.
+reference values of docs/model.md (section 4, dt = 1e-4 s) with the relative error.
 
     python tools/fig55.py -o out/fig55.png
 """
@@ -31,7 +31,7 @@ from slipest.plotting import pyplot  # noqa: E402  (matplotlib: pip install 'sli
 plt = pyplot()
 
 #: (panel title, [(legend label, parameter changes, reference Da [g], reference break-away theta [rad])])
-#: Reference values: shared/spec/stickslip-model.md section 4.
+#: Reference values: docs/model.md section 4.
 PANELS = [
     (
         "(a) Slip influence",
@@ -73,7 +73,7 @@ def main(argv=None) -> int:
 
     base = StickSlipParams()
     fig, axes = plt.subplots(1, 3, figsize=(16, 5.2), sharey=True)
-    print(f"Fig. 5.5 cases (dt = {args.dt:g} s); reference: spec section 4 (dt = 1e-4 s)")
+    print(f"Fig. 5.5 cases (dt = {args.dt:g} s); reference: docs/model.md section 4 (dt = 1e-4 s)")
     header = f"{'case':<34} {'Da [g]':>8} {'ref':>7} {'rel.err':>8}   {'theta_b [rad]':>13} {'ref':>6} {'rel.err':>8}"
     print(header)
     print("-" * len(header))
@@ -111,7 +111,7 @@ def main(argv=None) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=120)
     plt.close(fig)
-    print(f"worst |relative error| of Da vs the spec: {100 * worst:.2f}%  (spec tolerance: 2%)")
+    print(f"worst |relative error| of Da vs the reference: {100 * worst:.2f}%  (tests/test_model_stance.py: 0.1%)")
     print(f"wrote {out}")
     return 0
 

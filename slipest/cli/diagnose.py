@@ -1,8 +1,10 @@
 """``slipest diagnose``: find which sim-to-real effect explains the gap between logs and the model.
 
 Reads one or more logs (the CSV format of :mod:`slipest.io.log_csv`, with the
-``slip`` column: slip imposed and logged, soil unknown), cuts them into leg
-cycles and runs :func:`slipest.diagnosis.run.diagnose`: fits the nominal
+``slip`` column: slip imposed and logged, soil unknown; a live recording has
+it only when the device sent reference slips, else the error says the
+reference slip is missing), cuts them into leg cycles and runs
+:func:`slipest.diagnosis.run.diagnose`: fits the nominal
 model's soil, localises the remaining gap, refits soil + each catalog effect
 on training cycles, compares held-out gaps and names the effect, ``none`` or
 ``unexplained``. The known hardware (``nL``, ``MH``, ``mF``, ``lS``) comes

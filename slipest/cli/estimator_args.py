@@ -2,7 +2,9 @@
 
 ``--method``, ``--model`` and the known soil (``--kS``, ``--phiS``,
 ``--phiD``, ``--dphi``): added to a parser by :func:`add_estimator_arguments`
-and read back by :func:`soil_from_args` and :func:`model_from_args`.
+and read back by :func:`soil_from_args` (which also checks that ``--method
+eq515`` has what it needs, and says so in the options' own spelling) and
+:func:`model_from_args`.
 """
 
 from __future__ import annotations
@@ -12,15 +14,19 @@ import argparse
 #: The soil options, in SI: kS [N/m], phiS, phiD, dphi [rad].
 SOIL_OPTIONS = ("kS", "phiS", "phiD", "dphi")
 
+#: What ``--method eq515`` needs (slipest.inverse.eq515.Eq515Tracker): kS always (Eq. 5.15 cannot learn
+#: it); dphi known, or learnt from the reference slip.
+EQ515_NEEDS = "needs --kS, and --dphi (or --phiS with --phiD) or --use-reference to learn dphi from the reference slip"
+
 
 def add_estimator_arguments(p) -> None:
     """Add ``--method``, ``--model`` and the soil options to a parser or an argument group."""
     from slipest.online import METHODS
 
     p.add_argument("--method", choices=METHODS, default="default",
-                   help="default: multi-feature inverse with the soil learnt as it goes; eq515: thesis Eq. 5.15 "
-                   "(always needs --kS; and --dphi, or --phiS with --phiD, or --use-reference to learn dphi from "
-                   "the reference slip)")
+                   help="default: multi-feature inverse with the soil learnt as it goes; eq515: thesis Eq. 5.15, "
+                   f"the baseline: {EQ515_NEEDS}; its calibration knows one leg speed (the shipped one: 4 legs at "
+                   "0.63 rad/s), a cycle driven more than 10%% faster or slower is flagged 'speed', not estimated")
     p.add_argument("--model", metavar="FILE", default=None,
                    help="inverse model JSON of the default method (default: the shipped one, made for 4 legs at "
                    "0.63 rad/s; tools/train_inverse.py --legs N makes one for another wheel-leg)")
@@ -31,8 +37,19 @@ def add_estimator_arguments(p) -> None:
 
 
 def soil_from_args(args: argparse.Namespace) -> dict:
-    """The soil options given, ``{name: value}`` (empty when none)."""
-    return {k: getattr(args, k) for k in SOIL_OPTIONS if getattr(args, k, None) is not None}
+    """The soil options given, ``{name: value}`` (empty when none).
+
+    ValueError, naming the options, when ``--method eq515`` lacks what it
+    needs (:data:`EQ515_NEEDS`; ``args.use_reference`` is read where the
+    command has it).
+    """
+    soil = {k: getattr(args, k) for k in SOIL_OPTIONS if getattr(args, k, None) is not None}
+    if getattr(args, "method", None) == "eq515":
+        dphi_known = "dphi" in soil or {"phiS", "phiD"} <= set(soil)
+        if "kS" not in soil or not (dphi_known or getattr(args, "use_reference", False)):
+            given = ", ".join(f"--{k}" for k in soil) or "no soil option"
+            raise ValueError(f"--method eq515 {EQ515_NEEDS} (given: {given})")
+    return soil
 
 
 def model_from_args(args: argparse.Namespace):

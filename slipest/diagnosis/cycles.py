@@ -35,6 +35,15 @@ from slipest.diagnosis.predict import Grid
 #: Fewest share of the analysis bins a cycle's samples must fill (the rest are interpolated).
 MIN_FILLED = 0.1
 
+#: Why a leg cycle of a log is not used (counted, and named when no cycle is left).
+DROP_REASONS = ("incomplete", "no reference slip", "first of the log", "backwards or non-finite az")
+
+#: What a log without reference slip needs (the end of that error message).
+NEEDS_SLIP = ("The diagnosis compares each leg cycle with the model at the slip the wheel really had, so it "
+              "needs that slip logged: a testbed's log, or a live recording of a device that sends the reference "
+              "slip (serial SLIP_REFERENCE frames, CAN SlipReference messages; firmware-sim --send-reference). "
+              "To estimate the slip of this log instead, use 'slipest replay'.")
+
 
 @dataclass
 class CycleSet:
@@ -105,7 +114,12 @@ def sample_noise(az: np.ndarray) -> float:
 
 def cut_cycles(t, az, theta, slip, n_legs: int, grid: Grid | None = None, log_index: int = 0,
                keep_samples: bool = True) -> CycleSet:
-    """The complete cycles of one log, binned (see the module docstring)."""
+    """The complete cycles of one log, binned (see the module docstring).
+
+    ``ValueError`` when no cycle is usable, saying why: the reference slip
+    missing (``slip`` all NaN, or NaN at every complete cycle's midstance),
+    else the count of cycles dropped by reason (:data:`DROP_REASONS`).
+    """
     t = np.asarray(t, dtype=float)
     az = np.asarray(az, dtype=float)
     theta = np.asarray(theta, dtype=float)
@@ -120,6 +134,9 @@ def cut_cycles(t, az, theta, slip, n_legs: int, grid: Grid | None = None, log_in
     t, az, theta, slip = t[ok], az[ok], theta[ok], slip[ok]
     if t.size < 10:
         raise ValueError("the log has fewer than 10 usable samples")
+    if not np.isfinite(slip).any():
+        raise ValueError(f"the reference slip is missing: the 'slip' column holds no value ({slip.size} rows, all "
+                         f"NaN). {NEEDS_SLIP}")
     if np.any(np.diff(theta) < -math.pi):
         theta = np.unwrap(theta)  # a wrapped angle ([-pi, pi) or [0, 2 pi)) unwrapped; 0 stays at a midstance
     k = np.floor((theta + half) / (2 * half)).astype(np.int64)
@@ -131,7 +148,7 @@ def cut_cycles(t, az, theta, slip, n_legs: int, grid: Grid | None = None, log_in
     ends = np.r_[starts[1:], k.size]
     ys, counts, slips, ks, t0s, samples, speeds = [], [], [], [], [], [], []
     slip_of_k = {}
-    dropped = 0
+    why = dict.fromkeys(DROP_REASONS, 0)  # cycles dropped, by reason
     for s0, s1 in zip(starts, ends):
         ph = phase[s0:s1]
         sl = slip[s0:s1]
@@ -142,17 +159,19 @@ def cut_cycles(t, az, theta, slip, n_legs: int, grid: Grid | None = None, log_in
         ph = phase[s0:s1]
         a = az[s0:s1]
         if np.any(np.diff(ph) < 0) or not np.all(np.isfinite(a)):
-            dropped += 1
+            why["backwards or non-finite az"] += 1
             continue
         b = np.clip(np.searchsorted(edges, ph, side="right") - 1, 0, grid.nb - 1)
         cnt = np.bincount(b, minlength=grid.nb).astype(float)
         filled = cnt > 0
         complete = ph[0] - edges[0] < 4 * (edges[1] - edges[0]) and edges[-1] - ph[-1] < 4 * (edges[1] - edges[0])
-        if (not complete or filled.mean() < MIN_FILLED or not np.isfinite(slip_of_k[kk])
-                or (kk - 1) not in slip_of_k):
-            # incomplete, slip unknown, or no history: the first cycle of a run has no previous stance
-            # (filter state, earlier transients), which the prediction assumes
-            dropped += 1
+        # incomplete, slip unknown, or no history: the first cycle of a run has no previous stance
+        # (filter state, earlier transients), which the prediction assumes
+        reason = ("incomplete" if not complete or filled.mean() < MIN_FILLED
+                  else "no reference slip" if not np.isfinite(slip_of_k[kk])
+                  else "first of the log" if (kk - 1) not in slip_of_k else None)
+        if reason is not None:
+            why[reason] += 1
             continue
         safe = np.maximum(cnt, 1)
         mean = np.bincount(b, weights=a, minlength=grid.nb) / safe
@@ -180,7 +199,7 @@ def cut_cycles(t, az, theta, slip, n_legs: int, grid: Grid | None = None, log_in
         if keep_samples:
             samples.append((ph.copy(), a.copy()))
     if not ys:
-        raise ValueError("no complete leg cycle in the log (check nL and that theta is 0 at midstances)")
+        raise ValueError(_no_cycle_message(why, n_legs))
     ks = np.array(ks)
     slips = np.array(slips)
     prev = np.array([slip_of_k[kk - 1] for kk in ks])
@@ -204,8 +223,19 @@ def cut_cycles(t, az, theta, slip, n_legs: int, grid: Grid | None = None, log_in
         speed=np.array(speeds),
         noise=np.array([noise]),
         samples=samples,
-        dropped=dropped,
+        dropped=sum(why.values()),
     )
+
+
+def _no_cycle_message(why: dict, n_legs: int) -> str:
+    """Why a log gave no usable cycle, from the counts of dropped cycles by reason."""
+    cut = sum(why.values())
+    counts = ", ".join(f"{n} {reason}" for reason, n in why.items() if n)
+    if why["no reference slip"] and why["no reference slip"] + why["first of the log"] == cut:
+        return (f"the reference slip is missing: no complete leg cycle has a value in the 'slip' column at its "
+                f"midstance ({counts} of {cut} cycles). {NEEDS_SLIP}")
+    return (f"no complete leg cycle in the log ({counts} of {cut} cycles; check nL={n_legs} and that theta "
+            "is 0 at midstances)")
 
 
 def concat(sets) -> CycleSet:

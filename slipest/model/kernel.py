@@ -2,9 +2,9 @@
 
 This module holds the one time loop of the project's physics, written once
 and compiled with numba; :mod:`slipest.model.stance` wraps it in the public
-single-cycle and batch APIs. The model is the reading of
-``shared/spec/stickslip-model.md`` section 3 (thesis Eqs. 5.10-5.14 made
-well-posed by a leg that resists being pushed off its commanded line):
+single-cycle and batch APIs. The model is slipest's reading of thesis
+Eqs. 5.10-5.14 (``docs/model.md`` section 3), made well-posed by a leg that
+resists being pushed off its commanded line:
 
 Coordinates x forward, z up; foot at ``(xC, 0)``, hub at ``(xH, zH)``;
 ``ea = (sin th, cos th)`` (foot to hub, along the leg), ``ep = (cos th, -sin th)``::

@@ -1,6 +1,6 @@
 """Parameters of the wheel-leg stick-slip model, SI units throughout.
 
-Defaults are those of ``shared/spec/stickslip-model.md`` section 3. The
+Defaults are those of ``docs/model.md`` section 3. The
 nominal model is thesis Eqs. 5.10-5.14 with the leg's lateral stiffness
 ``kappa kS`` that makes it well-posed; the extension fields (damping,
 Stribeck friction, drive ripple) are off at their defaults and exist for the

@@ -23,7 +23,7 @@ import numpy as np
 from slipest.model import kernel as K
 from slipest.model.params import StickSlipParams, param_matrix
 
-#: Default integration step [s]; halving it changes Da by < 0.1% (spec 3).
+#: Default integration step [s]; halving it changes Da by < 0.1% on the reference cases (docs/model.md, section 3).
 DEFAULT_DT = 1e-4
 
 _STATUS_TEXT = {
