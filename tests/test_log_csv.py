@@ -308,6 +308,7 @@ def _fixed_point_blocks(draw):
 @example((b"1.5,2.25\n1..,5\n", 2, False))  # row 2: a short field whose point would be the previous field's
 @example((b"-9223372036854775808.,1.\n", 2, True))  # the int64 minimum, 19 digits
 @example((b"-0.000,-.0,-0.\n", 3, True))  # negative zeros
+@example((b".-0,0.\n", 2, False))  # a minus inside a field, after its point: no number (CI, 2026-11-23)
 def test_fixed_point_path_equals_loadtxt_path(case):
     """The fast path for fixed-point blocks gives bit for bit (sign of zero
     included) what numpy.loadtxt gives, or declines; it does not decline a

@@ -263,6 +263,8 @@ def _fixed_point(block: bytes, ncols: int) -> np.ndarray | None:
     dot = sep - dec - 1
     if not ((dot >= start).all() and (a[dot] == 46).all()):
         return None
+    if not np.isin(np.flatnonzero(a == 45), start).all():  # a '-' only as a field's first byte (".-0" is no number)
+        return None
     try:
         ints = np.loadtxt(block.replace(b".", b"").decode("ascii").split("\n")[:-1], delimiter=",",
                           comments=None, dtype=np.int64, ndmin=2)
