@@ -56,13 +56,14 @@ class CycleEstimate:
 class CycleEstimator(ABC):
     """One estimation method, fed one leg cycle at a time, in order.
 
-    ``model_legs`` and ``model_omega`` [rad/s]: the wheel-leg geometry and
-    leg speed the method's model was made for (the online layer refuses
-    another number of legs and flags cycles at another speed).
+    ``model_legs``: the wheel-leg geometry the method's model was made for
+    (the online layer refuses another number of legs); ``omega_range``:
+    ``(lo, hi)`` [rad/s], the leg speeds it covers (the online layer flags a
+    cycle at another speed ``"speed"`` and does not estimate it).
     """
 
     model_legs: int
-    model_omega: float
+    omega_range: tuple[float, float]
 
     @abstractmethod
     def update(self, features, slip_ref: float | None = None) -> CycleEstimate:

@@ -19,9 +19,8 @@ slip nodes; the measurement model is the feature surrogate
    break-away detected (``onset`` at the end of the window) carries no soil
    information and does not update the soil.
 
-Limits: the model's geometry and leg speed (``model_legs``,
-``model_omega``); slip 0-0.5 and the soil ranges of the model
-(``FeatureSurrogate.ranges``). One cycle step takes about 0.3-0.6 ms
+Limits: the model's geometry and covered leg speeds (``model_legs``,
+``omega_range``); slip 0-0.5 and the soil grid (:meth:`SoilGrid.default`). One cycle step takes about 0.3-0.6 ms
 (compiled; :meth:`SoilSlipEstimator.prefetch` warms its 6 MB table first).
 Why it is built this way, and what was tried: ``docs/estimator.md``.
 
@@ -199,7 +198,6 @@ class SoilSlipEstimator(CycleEstimator):
             raise ValueError("soil_temper, slip_temper and forget must be in (0, 1]")
         self.model = model or load_inverse_model()
         self.model_legs = self.model.n_legs
-        self.model_omega = self.model.omega
         self.omega_range = self.model.covered_range("omega")
         self.inverse = FeatureInverse(self.model, grid)
         self.grid = self.inverse.grid
@@ -238,7 +236,7 @@ class SoilSlipEstimator(CycleEstimator):
             self._out = np.empty(4 + 2 * self._summary_x.shape[0])
             # build the table of the middle of the covered speeds and run the compiled kernels once now
             # (not on the first cycle's latency)
-            table = self.tables.get(self.model_omega, 0.002)
+            table = self.tables.get(self.model.omega, 0.002)
             self._fw = np.zeros(table.columnar.shape[0], dtype=np.float32)
             self._table = table
             self._step(self._prior.copy(), 0.0, -1, 0.0, False)

@@ -53,19 +53,33 @@ alike.
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import asdict, dataclass, fields
 from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
 from slipest.cycle_estimator import CycleEstimate
-from slipest.features import INDEX, cycle_features
+from slipest.features import _sample_noise, INDEX, cycle_features, sample_noise
 from slipest.inverse.base import Soil
 from slipest.segmentation import CycleSegmenter
+from slipest.units import G
 
 #: Estimation methods (``method=``).
 METHODS = ("default", "eq515")
-_DELTA_A = INDEX["delta_a"]
+#: Cycles whose noise measures make the running noise estimate (their median) [-].
+NOISE_CYCLES = 9
+_DELTA_A, _NOISE, _NOISE_SMOOTH = INDEX["delta_a"], INDEX["noise"], INDEX["noise_smooth"]
+
+
+def _window_speed(t, theta_phase, half: float) -> float:
+    """Mean leg speed [rad/s] over the samples with phase in ``[0, half]`` (NaN when fewer than two)."""
+    inside = np.flatnonzero((theta_phase >= 0.0) & (theta_phase <= half))
+    if inside.size < 2:
+        return math.nan
+    i0, i1 = int(inside[0]), int(inside[-1])
+    span = float(t[i1] - t[i0])
+    return float(theta_phase[i1] - theta_phase[i0]) / span if span > 0 else math.nan
 #: :meth:`SlipEstimator.push` has the estimator prefetch its tables into the CPU caches once this
 #: fraction of the last cycle's duration has passed since it closed (about 25 ms before the next
 #: close at the models' speed): the estimate on the closing sample then waits less on memory.
@@ -85,8 +99,11 @@ class Estimate:
     method; NaN otherwise); slip_ref [-]: the reference slip given with
     this cycle's samples (the last finite one; NaN: none), whether used or not;
     used_reference: the estimator learnt the soil from it; n_samples:
-    samples in the feature window; quality: ``"ok"``, or why the cycle was
-    not estimated (all estimated values NaN).
+    samples in the cycle; quality: ``"ok"``, or why the cycle was
+    not estimated (all estimated values NaN); misfit [-]: 1 when the
+    model explains the cycle's features, above 1 the factor by which it
+    did not and by which the likelihood was widened (NaN: not checked);
+    noise [g]: the IMU noise's standard deviation the cycle was estimated with.
     """
 
     cycle: int
@@ -106,6 +123,8 @@ class Estimate:
     slip_ref: float
     used_reference: bool
     n_samples: int
+    misfit: float = math.nan
+    noise: float = math.nan
 
     @property
     def ok(self) -> bool:
@@ -116,14 +135,14 @@ class Estimate:
 
     @classmethod
     def of_cycle(cls, cyc, quality: str, slip_ref: float, delta_a: float = math.nan,
-                 r: CycleEstimate | None = None) -> "Estimate":
+                 r: CycleEstimate | None = None, noise: float = math.nan) -> "Estimate":
         """The row of closed cycle ``cyc`` (a :class:`~slipest.segmentation.LegCycle`): estimated when
         ``r`` is given (``quality`` "ok"), else every estimated value NaN and ``quality`` says why."""
         r = r or _NO_ESTIMATE
         return cls(cycle=int(cyc.k), t_end=float(cyc.t_end), delta_a=delta_a, slip=r.slip, slip_std=r.slip_std,
                    dphi=r.dphi, dphi_std=r.dphi_std, quality=quality, t_start=float(cyc.t_start), kS=r.kS,
                    kS_std=r.kS_std, phiS=r.phiS, phiS_std=r.phiS_std, change_prob=r.change_prob, slip_ref=slip_ref,
-                   used_reference=bool(r.used_reference), n_samples=int(cyc.n_samples))
+                   used_reference=bool(r.used_reference), n_samples=int(cyc.n_samples), misfit=r.misfit, noise=noise)
 
 
 _NO_ESTIMATE = CycleEstimate.nan()
@@ -156,10 +175,17 @@ class SlipEstimator:
     ``soil_temper``, ...; :class:`~slipest.inverse.eq515.Eq515Tracker`:
     ``dphi0``, ``dphi0_std``, ``q``). model / calibration: the inverse
     model and calibration dicts to use instead of the shipped files.
-    speed_tol: a cycle whose mean leg speed differs from the one the models
-    were made at (0.63 rad/s) by more than this fraction is flagged
-    ``"speed"``, not estimated: the stick-slip waveform and its frequencies
-    depend on the speed, and the models know one speed only.
+    noise: the IMU noise's standard deviation [g] when known (None: estimated
+    from the data, see below).
+
+    Each cycle is taken whole, leg phase ``-pi/nL`` to ``pi/nL``: the stance
+    half (from 0) holds the features, the rigid half before it, where the hub
+    rides smoothly on the planted foot, measures the IMU noise
+    (:func:`slipest.features.sample_noise`); the noise the features are
+    referred to is the median of the last :data:`NOISE_CYCLES` cycles'
+    measures (``noise_estimate``). A cycle whose mean leg speed lies outside
+    the speeds the method's model covers (``filter.omega_range``) is flagged
+    ``"speed"``, not estimated.
     """
 
     def __init__(
@@ -173,7 +199,7 @@ class SlipEstimator:
         estimator: dict | None = None,
         model=None,
         calibration: dict | None = None,
-        speed_tol: float = 0.1,
+        noise: float | None = None,
     ):
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, not {method!r}")
@@ -182,24 +208,28 @@ class SlipEstimator:
         self.soil = _soil_from(soil)
         self.use_reference = bool(use_reference)
         self.on_estimate = on_estimate
-        self._seg_opts = dict(segmenter or {})
+        half = math.pi / self.n_legs
+        # whole cycles (the rigid half measures the noise); 'partial' and the theta-step limit refer to the
+        # feature window, as for a feature-window segmenter
+        self._seg_opts = {"window": (-half, half), "complete_from": 0.0, "max_dtheta": half / 10.0, **(segmenter or {})}
         self._est_opts = dict(estimator or {})
         self._model = model
         self._calibration = calibration
-        if not speed_tol > 0:
-            raise ValueError(f"speed_tol={speed_tol} must be > 0")
-        self.speed_tol = float(speed_tol)
+        if noise is not None and not (math.isfinite(noise) and noise >= 0):
+            raise ValueError(f"noise={noise} g must be a finite number >= 0")
+        self.noise = noise
         self.segmenter = CycleSegmenter(self.n_legs, **self._seg_opts)
         self._make_filter()
         self._reset_counts()
         # load the compiled feature kernel now, not on the first cycle's latency (the segmenter hands
         # over read-only arrays: numba compiles those separately)
-        ph = np.linspace(0.0, math.pi / self.n_legs, 64)
+        ph = np.linspace(-half, half, 128)
         az = np.full(ph.size, 9.81)
-        tt = ph / 0.63
+        tt = (ph + half) / 0.63
         for arr in (ph, az, tt):
             arr.flags.writeable = False
         cycle_features(ph, az, tt, n_legs=self.n_legs)
+        sample_noise(ph, az, n_legs=self.n_legs)
 
     def _make_filter(self) -> None:
         """The cycle estimator of ``method`` (one place that knows the methods), checked against the geometry."""
@@ -218,7 +248,6 @@ class SlipEstimator:
         if self.filter.model_legs != self.n_legs:
             raise ValueError(f"{what} was made for a {self.filter.model_legs}-leg wheel-leg, not {self.n_legs} legs: "
                              "recalibrate/retrain it for this geometry")
-        self.model_omega = self.filter.model_omega
 
     def _reset_counts(self) -> None:
         self._ref = math.nan  # last finite reference slip since the last cycle closed
@@ -227,6 +256,19 @@ class SlipEstimator:
         self._n_estimates = 0
         self._n_flagged: dict[str, int] = {}
         self._n_reference = 0
+        self._n_misfit = 0
+        self._noises: deque = deque(maxlen=NOISE_CYCLES)  # the last cycles' noise measures [g]
+        self._noise_smooth = math.nan  # the last estimated cycle's smoothed noise [g]
+        #: The feature row (:data:`slipest.features.FEATURE_NAMES`) of the last cycle that reached the estimator.
+        self.last_features = None
+
+    @property
+    def noise_estimate(self) -> float:
+        """The IMU noise's standard deviation [g] the next cycle is referred to (the given ``noise``, else the
+        median of the last cycles' measures; NaN before the first)."""
+        if self.noise is not None:
+            return self.noise
+        return float(np.median(self._noises)) if self._noises else math.nan
 
     def reset(self) -> None:
         """Forget the stream and everything learnt (segmenter, soil filter, counters)."""
@@ -237,14 +279,17 @@ class SlipEstimator:
     @property
     def counters(self) -> dict:
         """``samples``, ``cycles`` (estimates emitted), ``cycles_ok``, ``cycles_flagged``,
-        ``flagged_<reason>`` per reason, ``reference_used``, and the segmenter's counters
-        prefixed ``segmenter_``."""
+        ``flagged_<reason>`` per reason, ``reference_used``, ``cycles_misfit`` (estimated cycles the
+        model did not explain, their intervals widened), ``noise_g`` (the running noise estimate [g]),
+        and the segmenter's counters prefixed ``segmenter_``."""
         c = {
             "samples": self._n_samples,
             "cycles": self._n_estimates,
             "cycles_ok": self._n_estimates - sum(self._n_flagged.values()),
             "cycles_flagged": sum(self._n_flagged.values()),
             "reference_used": self._n_reference,
+            "cycles_misfit": self._n_misfit,
+            "noise_g": self.noise_estimate,
         }
         for k, v in sorted(self._n_flagged.items()):
             c[f"flagged_{k}"] = v
@@ -261,20 +306,29 @@ class SlipEstimator:
         if cyc.quality != "ok":
             return self._flagged(cyc, cyc.quality, ref)
         ph, tt = cyc.theta_phase, cyc.t
-        span = float(tt[-1] - tt[0]) if tt.size > 1 else 0.0
-        if span > 0 and abs((float(ph[-1] - ph[0]) / span) / self.model_omega - 1.0) > self.speed_tol:
+        omega = _window_speed(tt, ph, math.pi / self.n_legs)
+        lo, hi = self.filter.omega_range
+        if not lo <= omega <= hi:
             return self._flagged(cyc, "speed", ref)
+        measured = float(_sample_noise(ph, cyc.az, math.pi / self.n_legs)) / G
+        if math.isfinite(measured):
+            self._noises.append(measured)
+        noise = self.noise_estimate
         try:
-            f = cycle_features(ph, cyc.az, tt, n_legs=self.n_legs)
+            f = cycle_features(ph, cyc.az, tt, n_legs=self.n_legs, noise=noise if math.isfinite(noise) else None)
         except ValueError:
             return self._flagged(cyc, "features", ref)
-        if not all(map(math.isfinite, f.tolist())):  # (numpy's reductions cost more on 18 values)
+        if not all(map(math.isfinite, f.tolist())):  # (numpy's reductions cost more on 20 values)
             return self._flagged(cyc, "features", ref)
+        self.last_features = f
         use = self.use_reference and math.isfinite(ref)
         r = self.filter.update(f, ref if use else None)
         if r.used_reference:
             self._n_reference += 1
-        return Estimate.of_cycle(cyc, "ok", ref, float(f[_DELTA_A]), r)
+        if r.misfit > 1.0:
+            self._n_misfit += 1
+        self._noise_smooth = float(f[_NOISE_SMOOTH])
+        return Estimate.of_cycle(cyc, "ok", ref, float(f[_DELTA_A]), r, float(f[_NOISE]))
 
     def _emit(self, cycles, refs) -> list:
         out = []
@@ -300,9 +354,10 @@ class SlipEstimator:
             out = self._emit(cycles, [ref] + [math.nan] * (len(cycles) - 1))
             last = cycles[-1]
             self._prefetch_at = last.t_end + PREFETCH_LEAD * (last.t_end - last.t_start)
-        elif t >= self._prefetch_at:  # the next close is near: warm the estimator's tables now
+        elif t >= self._prefetch_at:  # the next close is near: get the estimator's table ready, warm it
             self._prefetch_at = math.inf
-            self.filter.prefetch()
+            wt, wph = self.segmenter.open_window()
+            self.filter.prefetch(_window_speed(wt, wph, math.pi / self.n_legs), self._noise_smooth)
         if slip_ref is not None and math.isfinite(slip_ref):
             self._ref = float(slip_ref)
         return out

@@ -35,7 +35,8 @@ How the stream is interpreted
   re-synchronises on that sample (its first cycle may be ``"partial"``).
 * **Partial.** The first cycle after the stream starts (or re-synchronises)
   is emitted with quality ``"partial"`` when its window was not observed from
-  its start (the first sample was already at or past ``m_k + w0``).
+  its start (the first sample was already at or past ``m_k + complete_from``,
+  by default ``m_k + w0``).
 * **NaN / inf.** A sample with a non-finite ``t`` or ``theta`` cannot be
   placed: it is dropped and counted, and flags the current cycle ``"nan"``
   unless that cycle's window is already over. A NaN ``az`` in the window flags
@@ -193,7 +194,8 @@ _f8, _i8, _b1 = np.float64, np.int64, np.bool_
 #: A segmenter's whole state, one record read and written by the compiled :func:`_advance`.
 _STATE = np.dtype([
     # settings (see CycleSegmenter; h = pi/nL, P = 2h, max_gap NaN: adaptive)
-    ("h", _f8), ("P", _f8), ("invP", _f8), ("close_ph", _f8), ("w0", _f8), ("w1", _f8), ("unwrap", _b1),
+    ("h", _f8), ("P", _f8), ("invP", _f8), ("close_ph", _f8), ("w0", _f8), ("w1", _f8), ("complete_from", _f8),
+    ("unwrap", _b1),
     ("wlo", _f8), ("whi", _f8), ("reverse_tol", _f8), ("max_gap", _f8), ("gap_factor", _f8), ("max_dtheta", _f8),
     ("stop_dtheta", _f8), ("stop_time", _f8), ("full_scale", _f8), ("min_samples", _i8), ("max_samples", _i8),
     # the stream: mode, unwrapping, time order, progress (running max / min of theta), current cycle k
@@ -228,7 +230,7 @@ def _emit(s, buf, clip_values, t_end, reason):
     """Describe the open cycle, ending at ``t_end`` [s], in ``s.e_*``; ``reason``: 0 or ``_F_REVERSE``."""
     n = s.n
     bits = reason
-    partial = s.synced_here and s.sync_ph >= s.w0
+    partial = s.synced_here and s.sync_ph >= s.complete_from
     if partial:
         bits |= _F_PARTIAL
     if s.overflow:
@@ -437,8 +439,13 @@ class CycleSegmenter:
 
     Parameters (SI):
       n_legs: legs of the wheel-leg (``nL``).
-      window: ``(w0, w1)`` [rad], the feature window as phases relative to
-        the midstance, ``-pi/nL <= w0 < w1 <= pi/nL``; default ``(0, pi/nL)``.
+      window: ``(w0, w1)`` [rad], the window a cycle hands over, as phases
+        relative to the midstance, ``-pi/nL <= w0 < w1 <= pi/nL``; default
+        ``(0, pi/nL)`` (the feature window).
+      complete_from: [rad] the first cycle after the stream starts (or
+        re-synchronises) is ``"partial"`` when its first sample came at or
+        after this phase; default ``w0`` (a window that takes the rigid half
+        too can say that only the feature window, from 0, must be whole).
       max_gap: [s] largest allowed time step in the window span; None: adapt
         (``gap_factor`` times the span's median step).
       gap_factor: see ``max_gap``.
@@ -461,6 +468,7 @@ class CycleSegmenter:
         n_legs: int = 4,
         window: tuple[float, float] | None = None,
         *,
+        complete_from: float | None = None,
         max_gap: float | None = None,
         gap_factor: float = 5.0,
         max_dtheta: float | None = None,
@@ -487,6 +495,9 @@ class CycleSegmenter:
                 f"window {window!r} must satisfy -pi/n_legs <= w0 < w1 <= pi/n_legs (pi/n_legs = {h:.6f} rad)"
             )
         self.window = (w0, w1)
+        self.complete_from = w0 if complete_from is None else float(complete_from)
+        if not w0 <= self.complete_from < w1:
+            raise ValueError(f"complete_from={complete_from!r} rad must lie in the window [{w0:.6f}, {w1:.6f})")
         if max_gap is not None and not max_gap > 0:
             raise ValueError(f"max_gap must be > 0 s or None, got {max_gap!r}")
         if not gap_factor > 1:
@@ -525,6 +536,7 @@ class CycleSegmenter:
         self._fresh = np.zeros(1, _STATE)  # the state of a new stream
         for name, value in dict(
             h=h, P=2.0 * h, invP=1.0 / (2.0 * h), close_ph=h - _CLOSE_EPS, w0=w0, w1=w1,
+            complete_from=self.complete_from,
             unwrap=theta_wrap == "auto", wlo=_TWO_PI - self.wrap_tol, whi=_TWO_PI + self.wrap_tol,
             reverse_tol=self.reverse_tol, max_gap=math.nan if max_gap is None else self.max_gap,
             gap_factor=self.gap_factor, max_dtheta=self.max_dtheta, stop_dtheta=self.stop_dtheta,
@@ -545,6 +557,12 @@ class CycleSegmenter:
         """Forget the stream (buffers keep their current capacity)."""
         self._st = self._fresh.copy()
         self._c_cycles = dict.fromkeys(QUALITIES, 0)
+
+    def open_window(self) -> tuple[np.ndarray, np.ndarray]:
+        """The samples the open cycle's window holds so far: ``(t [s], theta_phase [rad])`` (views, read
+        them before the next push)."""
+        n = int(self._st[0]["n"])
+        return self._buf[0, :n], self._buf[2, :n]
 
     @property
     def buffer_capacity(self) -> int:

@@ -208,10 +208,12 @@ class FeatureSurrogate:
         levels = [np.asarray(v, dtype=float) for v in (slip_nodes, kS_levels, phiS_levels, dphi_levels)]
         bases = [np.polynomial.legendre.legvander((lv - self.center[j]) / self.halfwidth[j], deg)
                  for j, lv in enumerate(levels)]
-        x = np.einsum("ze,abcef->abczf", bases[3], dense)
-        x = np.einsum("yc,abczf->abyzf", bases[2], x)
-        x = np.einsum("xb,abyzf->axyzf", bases[1], x)
-        return np.einsum("sa,axyzf->xyzsf", bases[0], x)  # (kS, phiS, dphi, slip, f)
+        # one variable at a time, each a matrix product: (slip a, kS b, phiS c, dphi e, f) -> (kS, phiS, dphi, slip, f)
+        x = np.tensordot(dense, bases[3], axes=([3], [1]))  # (a, b, c, f, dphi)
+        x = np.tensordot(x, bases[2], axes=([2], [1]))  # (a, b, f, dphi, phiS)
+        x = np.tensordot(x, bases[1], axes=([1], [1]))  # (a, f, dphi, phiS, kS)
+        x = np.tensordot(x, bases[0], axes=([0], [1]))  # (f, dphi, phiS, kS, slip)
+        return np.ascontiguousarray(x.transpose(3, 2, 1, 4, 0))
 
     # ------------------------------------------------------------------ fitting
     @classmethod
