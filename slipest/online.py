@@ -399,6 +399,15 @@ class SlipEstimator:
         self._accumulate(slip_ref[start:])
         return self._emit(cycles, refs)
 
+    def finish(self) -> list:
+        """Say the stream ended: the estimate of its last cycle, which no sample will close (``"partial"`` when
+        the stream stopped inside its window; see :meth:`slipest.segmentation.CycleSegmenter.finish`). Samples
+        pushed afterwards start a new stream; the soil filter keeps what it learnt."""
+        cycles = self.segmenter.finish()
+        ref = self._ref
+        self._ref = math.nan
+        return self._emit(cycles, [ref] * len(cycles))
+
     def _accumulate(self, refs: np.ndarray) -> None:
         """Remember the last finite reference of ``refs``."""
         ok = np.flatnonzero(np.isfinite(refs))
@@ -411,13 +420,15 @@ class SlipEstimator:
         A chunk is ``(t, az, theta)`` or ``(t, az, theta, slip_ref)`` arrays,
         or any object with ``t``, ``az``, ``theta`` (and optionally ``slip``)
         attributes (e.g. :class:`slipest.io.log_csv.LogChunk`,
-        :class:`slipest.model.stream.SampleChunk`).
+        :class:`slipest.model.stream.SampleChunk`). When the chunks run out,
+        the stream has ended (:meth:`finish`).
         """
         for ch in chunks:
             if isinstance(ch, tuple):
                 yield from self.push_many(*ch)
             else:
                 yield from self.push_many(ch.t, ch.az, ch.theta, getattr(ch, "slip", None))
+        yield from self.finish()
 
 
 __all__ = ["Estimate", "ESTIMATE_FIELDS", "METHODS", "SlipEstimator"]

@@ -34,6 +34,8 @@ How the stream is interpreted
   rises ``reverse_tol`` above its running minimum; the segmenter then
   re-synchronises on that sample (its first cycle may be ``"partial"``).
 * **Partial.** The first cycle after the stream starts (or re-synchronises)
+  on a sample (a sample less than 1e-6 rad before a cycle's start, as a
+  rounded angle in a log may be, starts that cycle)
   is emitted with quality ``"partial"`` when its window was not observed from
   its start (the first sample was already at or past ``m_k + complete_from``,
   by default ``m_k + w0``).
@@ -59,7 +61,11 @@ How the stream is interpreted
   empty arrays. A rover stopped inside a window forever therefore holds at
   most ``max_samples`` samples.
 * ``"sparse"``: fewer than ``min_samples`` samples in the window.
-* The last, unclosed cycle of a stream is never emitted.
+* **End of stream.** The last cycle has no closing sample: :meth:`CycleSegmenter.finish`
+  says the stream ended and emits it, ``"ok"`` (after the usual checks)
+  when its window was observed to within ``max_dtheta`` of its end, else
+  ``"partial"``. Pushing on after :meth:`~CycleSegmenter.finish` starts a
+  new stream (the counters go on).
 
 A cycle may have several flags (``LegCycle.flags``); ``quality`` is the first
 of them in the order of :data:`QUALITY_PRIORITY`, or ``"ok"``. Only ``"ok"``
@@ -227,7 +233,8 @@ def _open_cycle(s):
 
 @numba.njit(cache=True)
 def _emit(s, buf, clip_values, t_end, reason):
-    """Describe the open cycle, ending at ``t_end`` [s], in ``s.e_*``; ``reason``: 0 or ``_F_REVERSE``."""
+    """Describe the open cycle, ending at ``t_end`` [s], in ``s.e_*``; ``reason``: flags to add (0,
+    ``_F_REVERSE``, or ``_F_PARTIAL`` for a window cut short by the end of the stream)."""
     n = s.n
     bits = reason
     partial = s.synced_here and s.sync_ph >= s.complete_from
@@ -337,7 +344,7 @@ def _advance(st, buf, t, az, theta, i, clip_values):
                 # start a cycle on this sample with no history
                 s.mode = _FORWARD
                 s.tmax = th
-                s.k = math.floor((th + s.h) * s.invP)
+                s.k = math.floor((th + s.h + _CLOSE_EPS) * s.invP)  # a hair before a cycle's start: that cycle
                 s.mk = s.k * s.P
                 s.t_open = ti
                 s.synced_here = True
@@ -377,6 +384,26 @@ def _advance(st, buf, t, az, theta, i, clip_values):
         s.has_prev = True
         i += 1
     return i, _DONE
+
+
+@numba.njit(cache=True)
+def _finish(st, buf, clip_values):
+    """End the stream of ``st[0]``: describe its open cycle in ``s.e_*`` (True), if it has one with window
+    samples, and go back to waiting for a first sample."""
+    s = st[0]
+    emitted = False
+    if s.mode == _FORWARD and s.nwin > 0:
+        cut = s.w1 - (s.tmax - s.mk) > s.max_dtheta
+        _emit(s, buf, clip_values, s.last_t, _F_PARTIAL if cut else 0)
+        emitted = True
+    s.mode = _INIT
+    s.resume = False
+    s.has_prev = False
+    s.have_raw = False
+    s.nwrap = 0
+    s.last_t = -math.inf
+    _open_cycle(s)
+    return emitted
 
 
 @dataclass(frozen=True, eq=False)
@@ -610,6 +637,13 @@ class CycleSegmenter:
                 f"push_many() needs equal-length 1-D arrays, got t{t.shape}, az{az.shape}, theta{theta.shape}"
             )
         return self._run(t, az, theta)
+
+    def finish(self) -> list:
+        """Say the stream ended: the cycles this completes (the open one, if its window has samples; see
+        "End of stream" in the module docstring). The next sample pushed starts a new stream."""
+        if _finish(self._st, self._buf, self.clip_values):
+            return [self._cycle()]
+        return []
 
     def _run(self, t, az, theta) -> list:
         """Feed contiguous float64 arrays to the compiled segmenter; the cycles they closed."""

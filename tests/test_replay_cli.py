@@ -4,6 +4,8 @@ import csv
 import io
 import json
 import math
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +16,8 @@ from slipest.io.log_csv import LogWriter
 from slipest.model.params import StickSlipParams
 from slipest.model.scenario import Scenario
 from slipest.model.stream import simulate_stream
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 
 N_CYCLES = 7
 
@@ -134,21 +138,16 @@ def test_legs_from_metadata_or_option(log_path, capsys):
     assert rc == 2 and "4-leg" in err and out == ""
 
 
-def _model_for_legs(path, n_legs):
-    """A small inverse model trained like tools/train_inverse.py does, for another wheel-leg geometry."""
-    from slipest.inverse.simdata import RANGES, draw_soils, simulate_features
-    from slipest.inverse.surrogate import FeatureSurrogate, save_inverse_model
+def _model_for_legs(path, n_legs, omega):
+    """A small inverse model for another wheel-leg geometry, trained by tools/train_inverse.py (two speed nodes
+    around ``omega``, a small schedule: quick, coarse)."""
+    import train_inverse  # tools/train_inverse.py
 
-    rng = np.random.default_rng(11)
-    base = StickSlipParams().with_(nL=n_legs)
-    n = 1500
-    soils = draw_soils(n, rng)
-    slip = rng.uniform(*RANGES["slip"], n)
-    feats = simulate_features(slip, soils[:, 0], soils[:, 1], soils[:, 2], rng=rng, base=base)
-    m = FeatureSurrogate.fit(feats, slip, soils[:, 0], soils[:, 1], soils[:, 2], degree=3,
-                             ranges=[RANGES[k] for k in ("slip", "kS", "phiD", "dphi")],
-                             meta={"training": {"n_legs": n_legs, "omega": base.omega}})
-    return save_inverse_model(m, path)
+    lo, hi = 0.9 * omega, 1.1 * omega
+    rc = train_inverse.main(["--legs", str(n_legs), "--nodes", "2", "--span", str(lo), str(hi), "--n-node", "1500",
+                             "--schedule", "tiny", "--n-val", "60", "--n-check", "30", "--out", str(path)])
+    assert rc == 0
+    return path
 
 
 def test_model_option_estimates_another_geometry(tmp_path, capsys):
@@ -161,7 +160,7 @@ def test_model_option_estimates_another_geometry(tmp_path, capsys):
     # the shipped model is for 4 legs: refused
     rc, out, err = run([log6], capsys)
     assert rc == 2 and "4-leg" in err and out == ""
-    model6 = _model_for_legs(tmp_path / "six_legs.json", 6)
+    model6 = _model_for_legs(tmp_path / "six_legs.npz", 6, params.omega)
     rc, out, err = run([log6, "--model", model6], capsys)
     assert rc == 0, err
     rows = list(csv.DictReader(io.StringIO(out)))
@@ -172,4 +171,4 @@ def test_model_option_estimates_another_geometry(tmp_path, capsys):
     bad = tmp_path / "bad.json"
     bad.write_text("{not json")
     rc, out, err = run([log6, "--model", bad], capsys)
-    assert rc == 2 and "bad.json" in err and "not valid JSON" in err and out == ""
+    assert rc == 2 and "bad.json" in err and "not an inverse model file" in err and out == ""

@@ -223,6 +223,44 @@ def test_first_partial_cycle():
     assert cycles[0].k == 0 and cycles[0].ok
 
 
+def test_a_start_a_hair_before_a_cycle_is_that_cycle():
+    # a log's rounded angle: -pi/4 written with 7 decimals is -0.7853982, 2e-8 rad before cycle 0 starts
+    t, az, th = make_stream(T=6.0, th0=-0.7853982)
+    cycles = run_many(CycleSegmenter(window=(-H, H)), t, az, th)
+    assert cycles[0].k == 0 and cycles[0].ok and cycles[0].t_start == t[0]
+    assert all(c.ok for c in cycles)
+
+
+@pytest.mark.parametrize("window", [(0.0, H), (-H, H)])
+def test_finish_emits_the_last_cycle_complete_or_partial(window):
+    # a stream that ends on the last sample of cycle 2 (the sample closing it never comes)
+    t, az, th = make_stream(T=10.0, th0=-H)
+    end = int(np.flatnonzero(th - 2 * P < H)[-1]) + 1
+    seg = CycleSegmenter(window=window)
+    first = cycles = run_many(seg, t[:end], az[:end], th[:end])
+    assert [c.k for c in cycles] == [0, 1] and cycles[1].ok
+    last = seg.finish()
+    assert [c.k for c in last] == [2] and last[0].ok and last[0].t_end == t[end - 1]
+    assert_cycle_matches_stream(last[0], t, az, th, window)
+    assert seg.counters["cycles_emitted"] == 3
+    assert seg.finish() == []  # nothing open any more
+    # the stream stopped in the middle of cycle 2's window: partial, never ok
+    cut = int(np.flatnonzero(th - 2 * P < 0.5 * H)[-1]) + 1
+    seg = CycleSegmenter(window=window)
+    run_many(seg, t[:cut], az[:cut], th[:cut])
+    last = seg.finish()
+    assert [c.k for c in last] == [2] and last[0].quality == "partial"
+    # pushing on starts a new stream: a clock that starts again is not "time backwards"
+    again = run_many(seg, t[:end], az[:end], th[:end]) + seg.finish()
+    assert [(c.k, c.quality) for c in again] == [(c.k, c.quality) for c in first] + [(2, "ok")]
+    assert seg.counters["time_backwards"] == 0 and seg.counters["resyncs"] == 2
+
+
+def test_finish_on_a_fresh_segmenter_emits_nothing():
+    seg = CycleSegmenter()
+    assert seg.finish() == [] and seg.counters["cycles_emitted"] == 0
+
+
 def test_time_gap_in_window_flags_gap():
     t, az, th = make_stream(T=20.0)
     # drop 50 ms of samples in the middle of cycle 3's window

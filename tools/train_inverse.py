@@ -1,22 +1,23 @@
 #!/usr/bin/env python3
 """Train the multi-feature inverse (feature surrogate) on the simulator and write it as package data.
 
-Draws slip, soil and leg speed uniformly over the envelope of
-:mod:`slipest.inverse.simdata` (slip 0-0.55, kS 400-1700 N/m, phiS 0.1-0.9
-rad, dphi 0-0.4 rad with phiD >= 0.08 rad, omega 0.25-1.3 rad/s: a margin
-around what the estimator promises), an IMU rate log-uniform in 200-2000 Hz
-and a noise uniform in 0-0.03 g per stance; simulates each stance, samples
-and measures it (:mod:`slipest.features`), fits
-:class:`slipest.inverse.surrogate.FeatureSurrogate` and checks it on a
-held-out draw: one-cycle slip with the soil known and unknown (RMSE, 95 %
-coverage), and the level of the best candidate's squared whitened distance
-on clean cycles (``fit_level``, the estimator's misfit threshold). Writes
-``slipest/data/inverse_model.json`` (``--out`` to write elsewhere). The
+At each speed node (``--nodes``, geometric over 0.27-1.29 rad/s: a margin
+around the 0.3-1.2 rad/s the estimator promises) draws slip, soil and IMU
+uniformly over the envelope of :mod:`slipest.inverse.simdata` (slip 0-0.55,
+kS 400-1700 N/m, phiS 0.1-0.9 rad, dphi 0-0.4 rad with phiD >= 0.08 rad; IMU
+rate log-uniform 200-2000 Hz, noise uniform 0-0.03 g), simulates each
+stance, samples and measures it (:mod:`slipest.features`) and fits the
+node's polynomial (:func:`slipest.inverse.surrogate.fit_node`). It then
+checks the model on a held-out draw at speeds *between* the nodes: one-cycle
+slip with the soil known and unknown (RMSE, 95 % coverage), and the level of
+the best candidate's squared whitened distance on clean cycles
+(``fit_level``, the estimator's misfit threshold). Writes
+``slipest/data/inverse_model.npz`` (``--out`` to write elsewhere). The
 benchmarks draw with other seeds; nothing here looks at them.
 
-    python tools/train_inverse.py                        # ~25 min on 2 cores (simulation ~10, fit ~8, checks ~5)
-    python tools/train_inverse.py --n-train 60000 --schedule small   # quick, for trying things
-    python tools/train_inverse.py --rows rows.npz        # keep (or reuse) the simulated rows
+    python tools/train_inverse.py                      # ~40 min on 2 cores (simulation ~30, fit ~6, checks ~3)
+    python tools/train_inverse.py --n-node 20000 --nodes 4 --schedule small   # quick, for trying things
+    python tools/train_inverse.py --rows rows.npz      # keep (or reuse) the simulated rows
 """
 
 from __future__ import annotations
@@ -31,38 +32,35 @@ import numpy as np
 from tqdm import tqdm
 
 from slipest import __version__
+from slipest.features import INDEX
 from slipest.inverse.feature_inverse import FeatureInverse
-from slipest.inverse.simdata import ENVELOPE, NOISE_RANGE, PHID_MIN, RATE_RANGE, VARIABLES, draw_envelope, draw_imu, simulate_features
-from slipest.inverse.surrogate import FeatureSurrogate, save_inverse_model
+from slipest.inverse.simdata import ENVELOPE, NOISE_RANGE, PHID_MIN, RATE_RANGE, draw_envelope, draw_imu, simulate_features
+from slipest.inverse.surrogate import VARIABLES, FeatureSurrogate, MODEL_FEATURES, fit_node, node_terms, save_inverse_model
 from slipest.model.params import StickSlipParams
 
-DEFAULT_OUT = Path(__file__).resolve().parents[1] / "slipest" / "data" / "inverse_model.json"
+DEFAULT_OUT = Path(__file__).resolve().parents[1] / "slipest" / "data" / "inverse_model.npz"
 
-#: Term schedules: {(omega degree, noise degree): total degree in (slip, kS, phiS, dphi)}.
-SCHEDULES = {
-    "default": {(0, 0): 14, (1, 0): 10, (2, 0): 8, (3, 0): 6, (0, 1): 8, (1, 1): 6, (0, 2): 6, (2, 1): 4},
-    "small": {(0, 0): 8, (1, 0): 6, (2, 0): 4, (0, 1): 4, (1, 1): 2},
-}
+#: Term schedules: {noise degree: total degree in (slip, kS, phiS, dphi)}.
+SCHEDULES = {"default": {0: 14, 1: 8, 2: 6}, "small": {0: 8, 1: 4}, "tiny": {0: 3, 1: 1}}
+#: Speeds of the first and last node [rad/s].
+NODE_SPAN = (0.27, 1.29)
 #: What the estimator promises (the training envelope is wider).
 COVERED = {"slip": [0.0, 0.5], "kS": [500.0, 1500.0], "phiS": [0.1, 0.8], "dphi": [0.0, 0.35], "omega": [0.3, 1.2],
            "phid_min": 0.1}
 
 
-def simulate(n: int, rng: np.random.Generator, base: StickSlipParams, desc: str):
-    """``n`` stances over the envelope: points ``x`` (n, 6) with the measured smoothed noise in column 5, rows."""
-    x = draw_envelope(n, rng)
-    rate, noise = draw_imu(n, rng)
-    with tqdm(total=n, desc=desc, unit="stance", file=sys.stderr) as bar:
-        rows = simulate_features(x, rate, noise, rng, base=base, progress=bar.update)
-    from slipest.features import INDEX
-
-    return np.column_stack([x, rows[:, INDEX["noise_smooth"]]]), rows, rate, noise
+def simulate(x, rng: np.random.Generator, base: StickSlipParams, bar) -> tuple[np.ndarray, np.ndarray]:
+    """Stances at points ``x`` (n, 5: slip, kS, phiS, dphi, omega) with a random IMU each: the model's inputs
+    ``(n, 6)`` (slip, kS, phiS, dphi, omega, measured smoothed noise) and the feature rows."""
+    rate, noise = draw_imu(len(x), rng)
+    rows = simulate_features(x, rate, noise, rng, base=base, progress=bar.update)
+    return np.column_stack([x, rows[:, INDEX["noise_smooth"]]]), rows
 
 
 def one_cycle_figures(inverse: FeatureInverse, x, rows, n: int) -> dict:
     """Held-out one-cycle slip: soil known and unknown (RMSE, 95 % coverage)."""
     known, unknown = [], []
-    for j in range(n):
+    for j in tqdm(range(n), desc="one-cycle check", unit="cycle", file=sys.stderr):
         kS, phiS, dphi = x[j, 1:4]
         known.append(inverse.slip_known_soil(rows[j], kS, phiS, phiS - dphi))
         unknown.append(inverse.slip(rows[j]))
@@ -86,7 +84,7 @@ def fit_level(model: FeatureSurrogate, x, rows, n: int) -> dict:
     cols = np.ascontiguousarray(model.columns, dtype=np.int64)
     lp = slip_prior(SLIP_NODES[::2]).astype(np.float32)
     best = []
-    for j in range(n):
+    for j in tqdm(range(n), desc="misfit level", unit="cycle", file=sys.stderr):
         table = tables.get(x[j, 4], x[j, 5])
         d, k, s = table.columnar.shape
         fw = np.zeros(d, dtype=np.float32)
@@ -102,63 +100,105 @@ def fit_level(model: FeatureSurrogate, x, rows, n: int) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--n-train", type=int, default=400000, help="training stances (default 400000)")
-    ap.add_argument("--n-val", type=int, default=6000, help="held-out stances (default 6000)")
+    ap.add_argument("--nodes", type=int, default=11, help="speed nodes, geometric over 0.27-1.29 rad/s (default 11)")
+    ap.add_argument("--span", type=float, nargs=2, default=NODE_SPAN, metavar=("LO", "HI"),
+                    help="speeds of the first and last node [rad/s] (default 0.27 1.29)")
+    ap.add_argument("--n-node", type=int, default=100000, help="training stances per node (default 100000)")
+    ap.add_argument("--n-val", type=int, default=4000, help="held-out stances between the nodes (default 4000)")
     ap.add_argument("--schedule", choices=sorted(SCHEDULES), default="default", help="term schedule (default: default)")
     ap.add_argument("--n-check", type=int, default=800,
                     help="held-out stances the one-cycle figures and the misfit level use (default 800; each needs "
-                    "a grid table at its speed and noise, about 0.2 s)")
+                    "a grid table at its speed and noise, about 0.1 s)")
     ap.add_argument("--legs", type=int, default=4, help="legs of the wheel-leg the model is for (default 4)")
     ap.add_argument("--seed", type=int, default=777)
     ap.add_argument("--rows", type=Path, help="an .npz of simulated rows: read if it exists, else written")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = ap.parse_args(argv)
+    if args.nodes < 2:
+        ap.error("--nodes must be at least 2")
+    if not 0 < args.span[0] < args.span[1]:
+        ap.error("--span needs 0 < LO < HI")
     base = StickSlipParams().with_(nL=args.legs)
+    node_omegas = np.geomspace(*args.span, args.nodes)
+    covered = dict(COVERED, omega=[max(COVERED["omega"][0], args.span[0]), min(COVERED["omega"][1], args.span[1])])
     t0 = time.time()
     if args.rows is not None and args.rows.exists():
         data = np.load(args.rows)
-        x_tr, f_tr, x_va, f_va = data["x_tr"], data["f_tr"], data["x_va"], data["f_va"]
-        print(f"read {len(x_tr)} + {len(x_va)} simulated rows from {args.rows}", file=sys.stderr)
+        x_nodes = [data[f"x{i}"] for i in range(args.nodes)]
+        f_nodes = [data[f"f{i}"] for i in range(args.nodes)]
+        x_va, f_va = data["x_va"], data["f_va"]
+        if not all(np.allclose(xn[:, 4], om) for xn, om in zip(x_nodes, node_omegas)):
+            ap.error(f"{args.rows} was simulated at other speed nodes")
+        print(f"read {sum(map(len, x_nodes))} + {len(x_va)} simulated rows from {args.rows}", file=sys.stderr)
     else:
-        rng = np.random.default_rng(args.seed)
-        x_tr, f_tr, _, _ = simulate(args.n_train, rng, base, "simulate (training)")
-        x_va, f_va, _, _ = simulate(args.n_val, rng, base, "simulate (held out)")
+        seeds = np.random.SeedSequence(args.seed).spawn(args.nodes + 1)
+        x_nodes, f_nodes = [], []
+        with tqdm(total=args.nodes * args.n_node + args.n_val, desc="simulate", unit="stance", file=sys.stderr) as bar:
+            for om, ss in zip(node_omegas, seeds):
+                rng = np.random.default_rng(ss)
+                x = draw_envelope(args.n_node, rng)
+                x[:, 4] = om
+                xn, fn = simulate(x, rng, base, bar)
+                x_nodes.append(xn)
+                f_nodes.append(fn)
+            rng = np.random.default_rng(seeds[-1])
+            x = draw_envelope(args.n_val, rng)
+            x[:, 4] = rng.uniform(*covered["omega"], args.n_val)
+            x_va, f_va = simulate(x, rng, base, bar)
         if args.rows is not None:
-            np.savez(args.rows, x_tr=x_tr, f_tr=f_tr, x_va=x_va, f_va=f_va)
+            np.savez(args.rows, x_va=x_va, f_va=f_va, **{f"x{i}": v for i, v in enumerate(x_nodes)},
+                     **{f"f{i}": v for i, v in enumerate(f_nodes)})
     t_sim = time.time() - t0
-    ranges = [list(ENVELOPE[v]) for v in VARIABLES[:5]] + [[0.0, float(np.nanmax(x_tr[:, 5]))]]
-    with tqdm(total=len(x_tr), desc="fit", unit="row", file=sys.stderr) as bar:
-        model = FeatureSurrogate.fit(x_tr, f_tr, SCHEDULES[args.schedule], ranges=ranges, phid_min=PHID_MIN,
-                                     covered=COVERED, progress=bar.update)
+
+    sig_hi = float(max(np.nanmax(xn[:, 5]) for xn in x_nodes))
+    lo = np.array([ENVELOPE[v][0] for v in VARIABLES[:4]] + [0.0])
+    hi = np.array([ENVELOPE[v][1] for v in VARIABLES[:4]] + [sig_hi])
+    center, halfwidth = (lo + hi) / 2, (hi - lo) / 2
+    ranges = np.vstack([np.column_stack([lo, hi]), [node_omegas[0], node_omegas[-1]]])
+    terms = node_terms(SCHEDULES[args.schedule])
+    cols = [INDEX[f] for f in MODEL_FEATURES]
+    coef, cov_coef = [], []
+    with tqdm(total=sum(map(len, x_nodes)), desc="fit", unit="row", file=sys.stderr) as bar:
+        for xn, fn in zip(x_nodes, f_nodes):
+            c, r = fit_node(xn[:, [0, 1, 2, 3, 5]], fn[:, cols], terms, center, halfwidth, progress=bar.update)
+            coef.append(c)
+            cov_coef.append(r)
     t_fit = time.time() - t0 - t_sim
-    save_inverse_model(model, args.out)  # (again below with the held-out figures) not lost if checking fails
-    ok = np.all(np.isfinite(f_va[:, model.columns]), axis=1)
-    x_va, f_va = x_va[ok], f_va[ok]
-    levels = fit_level(model, x_va, f_va, min(len(x_va), args.n_check))
     meta = {
         "created_by": "tools/train_inverse.py " + " ".join(sys.argv[1:] if argv is None else argv),
         "created_utc": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
         "slipest_version": __version__,
-        "training": {"n_train": int(len(x_tr)), "n_val": int(len(x_va)), "seed": args.seed,
-                     "schedule": {f"{k[0]},{k[1]}": v for k, v in SCHEDULES[args.schedule].items()},
-                     "n_terms": int(model.terms.shape[0]), "envelope": ENVELOPE, "phid_min": PHID_MIN,
+        "training": {"n_per_node": int(len(x_nodes[0])), "n_val": int(len(x_va)), "seed": args.seed,
+                     "schedule": {str(k): v for k, v in SCHEDULES[args.schedule].items()},
+                     "n_terms": int(terms.shape[0]), "envelope": ENVELOPE, "phid_min": PHID_MIN,
                      "rate_hz": list(RATE_RANGE), "noise_g": list(NOISE_RANGE),
                      "model": f"StickSlipParams defaults but nL {args.legs}", "n_legs": args.legs,
                      "simulate_s": round(t_sim), "fit_s": round(t_fit)},
-        "fit_level": levels["q99"],
-        "fit_level_quantiles": levels,
         "units": {"slip": "-", "kS": "N/m", "phiS": "rad", "dphi": "rad", "omega": "rad/s", "noise_smooth": "g",
                   "features": "see slipest.features.FEATURE_UNITS"},
     }
-    model = FeatureSurrogate(model.features, model.center, model.halfwidth, model.ranges, model.phid_min, model.terms,
-                             model.coef, model.cov_coef, model.covered, meta)
-    meta["validation_one_cycle"] = one_cycle_figures(FeatureInverse(model), x_va, f_va, min(len(x_va), args.n_check))
+
+    def build(meta):
+        return FeatureSurrogate(MODEL_FEATURES, node_omegas, center, halfwidth, ranges, PHID_MIN, terms,
+                                np.stack(coef), np.stack(cov_coef), covered, meta)
+
+    model = build(meta)
+    save_inverse_model(model, args.out)  # (again below with the held-out figures): not lost if checking fails
+    ok = np.all(np.isfinite(f_va[:, cols]), axis=1)
+    x_va, f_va = x_va[ok], f_va[ok]
+    n_check = min(len(x_va), args.n_check)
+    levels = fit_level(model, x_va, f_va, n_check)
+    meta["fit_level"] = levels["q99"]
+    meta["fit_level_quantiles"] = levels
+    meta["validation_one_cycle"] = one_cycle_figures(FeatureInverse(model), x_va, f_va, n_check)
+    model = build(meta)
     path = save_inverse_model(model, args.out)
     v = meta["validation_one_cycle"]
-    print(f"wrote {path}: {model.terms.shape[0]} terms; simulation {t_sim:.0f} s, fit {t_fit:.0f} s", file=sys.stderr)
-    print(f"one cycle, held out: soil known   slip RMSE {v['soil_known']['slip_rmse']:.4f}, "
+    print(f"wrote {path}: {args.nodes} speed nodes x {terms.shape[0]} terms; simulation {t_sim:.0f} s, "
+          f"fit {t_fit:.0f} s", file=sys.stderr)
+    print(f"one cycle, held out between nodes: soil known   slip RMSE {v['soil_known']['slip_rmse']:.4f}, "
           f"95% coverage {v['soil_known']['coverage95']:.3f}")
-    print(f"one cycle, held out: soil unknown slip RMSE {v['soil_unknown']['slip_rmse']:.4f}, "
+    print(f"one cycle, held out between nodes: soil unknown slip RMSE {v['soil_unknown']['slip_rmse']:.4f}, "
           f"95% coverage {v['soil_unknown']['coverage95']:.3f}")
     print(f"best candidate's squared whitened distance on clean cycles: median {levels['q50']:.1f}, "
           f"99th percentile {levels['q99']:.1f} (the misfit level)")

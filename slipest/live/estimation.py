@@ -231,9 +231,17 @@ class LiveEstimation:
             else:
                 estimates = est.push_many(s.t, s.az, s.theta, s.slip if self.use_reference else None)
         except (ValueError, FloatingPointError) as exc:  # never let one bad cycle stop the stream
-            self.c["estimator_errors"] += 1
-            self.last_error = f"wheel {wheel}: {type(exc).__name__}: {exc}"
+            self._estimator_error(wheel, exc)
             return
+        self._report(wheel, st, estimates, s)
+
+    def _estimator_error(self, wheel: int, exc: Exception) -> None:
+        self.c["estimator_errors"] += 1
+        self.last_error = f"wheel {wheel}: {type(exc).__name__}: {exc}"
+
+    def _report(self, wheel: int, st: WheelState, estimates: list, s: WheelSamples | None) -> None:
+        """Count and hand on a wheel's estimates; ``s``: the samples that closed them (their intake times
+        give the latency), None at the end of the stream."""
         now = time.monotonic()
         for est in estimates:
             st.cycles_seen += 1
@@ -245,9 +253,11 @@ class LiveEstimation:
             else:
                 st.estimates += 1
                 self.c["estimates"] += 1
-            t_end = float(getattr(est, "t_end", math.nan))
-            k = int(np.searchsorted(s.t, t_end)) if t_end == t_end else -1
-            intake = float(s.intake[k]) if 0 <= k < len(s) and s.t[k] == t_end else math.nan
+            intake = math.nan
+            if s is not None:
+                t_end = float(getattr(est, "t_end", math.nan))
+                k = int(np.searchsorted(s.t, t_end)) if t_end == t_end else -1
+                intake = float(s.intake[k]) if 0 <= k < len(s) and s.t[k] == t_end else math.nan
             latency = now - intake if intake == intake else math.nan
             if latency == latency:
                 self._estimate_latency.append(latency)
@@ -259,10 +269,21 @@ class LiveEstimation:
             self.recorder.flush(force)
 
     def close(self) -> None:
-        """Hand on the samples the streams still hold, then write, flush and close the recording."""
+        """Hand on the samples the streams still hold, end every wheel's stream (its last cycle, which no
+        sample will close, is estimated: see :meth:`slipest.online.SlipEstimator.finish`), then write, flush
+        and close the recording."""
         try:
             for wheel, st in self.wheels.items():
                 self._push(wheel, st, st.stream.flush())
+                finish = getattr(st.estimator, "finish", None)
+                if finish is None:
+                    continue
+                try:
+                    estimates = finish()
+                except (ValueError, FloatingPointError) as exc:
+                    self._estimator_error(wheel, exc)
+                    continue
+                self._report(wheel, st, estimates, None)
         finally:
             if self.recorder is not None:
                 self.recorder.close()

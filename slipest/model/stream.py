@@ -136,6 +136,13 @@ class _Schedule:
         return out
 
 
+def cycle_starts(scenario: Scenario) -> np.ndarray:
+    """Start times [s] of the scenario's leg cycles, and the end of the last: ``(len(cycles) + 1,)``, from 0
+    (each cycle lasts ``2 pi / (nL omega)`` at its own leg speed, longer or shorter with a speed ripple)."""
+    transform, _ = _effect_chain(scenario)
+    return _Schedule([transform(c) for c in scenario.cycles]).start
+
+
 def iter_stream(scenario: Scenario, chunk_cycles: int = 32) -> Iterator[SampleChunk]:
     """Yield the scenario's samples in chunks of ``chunk_cycles`` leg cycles."""
     if chunk_cycles < 1:

@@ -352,11 +352,12 @@ class Replay:
         est = self._estimator(None)
         tally = self._tally()
         pass_ref = self.options.pass_reference
-        for ch in self._reader.iter_chunks(self.options.chunk_rows):
-            for e in est.push_many(ch.t, ch.az, ch.theta, ch.slip if pass_ref else None):
-                tally.add(e)
-                if on_estimate is not None:
-                    on_estimate(None, e)
+        chunks = ((ch.t, ch.az, ch.theta, ch.slip if pass_ref else None)
+                  for ch in self._reader.iter_chunks(self.options.chunk_rows))
+        for e in est.iter_estimates(chunks):
+            tally.add(e)
+            if on_estimate is not None:
+                on_estimate(None, e)
         tally.estimator_counters = est.counters
         source = self._reader.counters() if self.kind == "ros2" else {}
         return {None: tally}, source
