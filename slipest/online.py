@@ -19,6 +19,10 @@ that cannot be estimated (segmenter flag such as ``"gap"``, ``"nan"``,
 or a leg speed outside the models' (``"speed"``)
 still gives an Estimate, with NaN values and ``quality`` naming the reason:
 nothing is dropped silently, and nothing is estimated from corrupted data.
+A cycle with a few samples missing or unusable in short holes (see
+:class:`~slipest.segmentation.CycleSegmenter`) or with isolated outliers
+(:mod:`slipest.despike`) is estimated without them, with quality
+``"repaired"`` and their count in ``n_repaired``.
 
 Methods (each a :class:`~slipest.cycle_estimator.CycleEstimator`):
 
@@ -60,6 +64,7 @@ from typing import Callable, Iterable, Iterator
 import numpy as np
 
 from slipest.cycle_estimator import CycleEstimate
+from slipest.despike import outliers
 from slipest.features import _sample_noise, INDEX, cycle_features, sample_noise
 from slipest.inverse.base import Soil
 from slipest.segmentation import CycleSegmenter
@@ -67,6 +72,8 @@ from slipest.units import G
 
 #: Estimation methods (``method=``).
 METHODS = ("default", "eq515")
+#: Qualities of an estimated cycle.
+ESTIMATED = ("ok", "repaired")
 #: Cycles whose noise measures make the running noise estimate (their median) [-].
 NOISE_CYCLES = 9
 _DELTA_A, _NOISE, _NOISE_SMOOTH = INDEX["delta_a"], INDEX["noise"], INDEX["noise_smooth"]
@@ -80,6 +87,32 @@ def _window_speed(t, theta_phase, half: float) -> float:
     i0, i1 = int(inside[0]), int(inside[-1])
     span = float(t[i1] - t[i0])
     return float(theta_phase[i1] - theta_phase[i0]) / span if span > 0 else math.nan
+#: Mean ``az`` over a cycle's rigid half [g] outside of which the input's units or axis are taken as wrong
+#: (the hub's own acceleration there is a few hundredths of g; a tilted IMU reads cos(tilt)).
+GRAVITY_RANGE = (0.8, 1.2)
+
+
+def _units_hint(mean_g: float) -> str:
+    """What a cycle's rigid-half mean ``az`` [g] outside :data:`GRAVITY_RANGE` most likely means."""
+    lo, hi = GRAVITY_RANGE
+    if lo <= mean_g * G <= hi:
+        return (f"az looks like it is in g (a rigid-phase mean of {mean_g * G:.2f} where gravity reads 9.81): "
+                "slipest wants m/s^2")
+    if -hi <= mean_g <= -lo or -hi <= mean_g * G <= -lo:
+        return f"az points down (a rigid-phase mean of {mean_g * G:.2f} m/s^2): the IMU axis is reversed"
+    if abs(mean_g) < 0.2:
+        return (f"az has no gravity in it (a rigid-phase mean of {mean_g * G:.2f} m/s^2): slipest wants the specific "
+                "force the IMU reports, +9.81 m/s^2 at rest")
+    return (f"az's rigid-phase mean is {mean_g * G:.2f} m/s^2, not gravity's 9.81: check the IMU's axis, units and "
+            "mounting")
+
+
+def _rigid_mean(theta_phase, az, half: float) -> float:
+    """Mean ``az`` [input units] over the rigid half's phases ``[-0.8 half, -0.05 half]`` (NaN when empty)."""
+    sel = (theta_phase >= -0.8 * half) & (theta_phase <= -0.05 * half)
+    return float(np.mean(az[sel])) if sel.any() else math.nan
+
+
 #: :meth:`SlipEstimator.push` has the estimator prefetch its tables into the CPU caches once this
 #: fraction of the last cycle's duration has passed since it closed (about 25 ms before the next
 #: close at the models' speed): the estimate on the closing sample then waits less on memory.
@@ -99,8 +132,10 @@ class Estimate:
     method; NaN otherwise); slip_ref [-]: the reference slip given with
     this cycle's samples (the last finite one; NaN: none), whether used or not;
     used_reference: the estimator learnt the soil from it; n_samples:
-    samples in the cycle; quality: ``"ok"``, or why the cycle was
-    not estimated (all estimated values NaN); misfit [-]: 1 when the
+    samples in the cycle; quality: ``"ok"``, ``"repaired"`` (estimated
+    without ``n_repaired`` of its samples: missing in short holes,
+    unusable or isolated outliers), or why the cycle was not estimated
+    (all estimated values NaN); misfit [-]: 1 when the
     model explains the cycle's features, above 1 the factor by which it
     did not and by which the likelihood was widened (NaN: not checked);
     noise [g]: the IMU noise's standard deviation the cycle was estimated with.
@@ -125,24 +160,28 @@ class Estimate:
     n_samples: int
     misfit: float = math.nan
     noise: float = math.nan
+    n_repaired: int = 0
 
     @property
     def ok(self) -> bool:
-        return self.quality == "ok"
+        """True when the cycle was estimated (``quality`` ``"ok"`` or ``"repaired"``)."""
+        return self.quality in ESTIMATED
 
     def as_dict(self) -> dict:
         return asdict(self)
 
     @classmethod
     def of_cycle(cls, cyc, quality: str, slip_ref: float, delta_a: float = math.nan,
-                 r: CycleEstimate | None = None, noise: float = math.nan) -> "Estimate":
+                 r: CycleEstimate | None = None, noise: float = math.nan, n_repaired: int = 0) -> "Estimate":
         """The row of closed cycle ``cyc`` (a :class:`~slipest.segmentation.LegCycle`): estimated when
-        ``r`` is given (``quality`` "ok"), else every estimated value NaN and ``quality`` says why."""
+        ``r`` is given (``quality`` "ok" or "repaired"), else every estimated value NaN and ``quality``
+        says why."""
         r = r or _NO_ESTIMATE
         return cls(cycle=int(cyc.k), t_end=float(cyc.t_end), delta_a=delta_a, slip=r.slip, slip_std=r.slip_std,
                    dphi=r.dphi, dphi_std=r.dphi_std, quality=quality, t_start=float(cyc.t_start), kS=r.kS,
                    kS_std=r.kS_std, phiS=r.phiS, phiS_std=r.phiS_std, change_prob=r.change_prob, slip_ref=slip_ref,
-                   used_reference=bool(r.used_reference), n_samples=int(cyc.n_samples), misfit=r.misfit, noise=noise)
+                   used_reference=bool(r.used_reference), n_samples=int(cyc.n_samples), misfit=r.misfit, noise=noise,
+                   n_repaired=int(n_repaired))
 
 
 _NO_ESTIMATE = CycleEstimate.nan()
@@ -185,7 +224,10 @@ class SlipEstimator:
     referred to is the median of the last :data:`NOISE_CYCLES` cycles'
     measures (``noise_estimate``). A cycle whose mean leg speed lies outside
     the speeds the method's model covers (``filter.omega_range``) is flagged
-    ``"speed"``, not estimated.
+    ``"speed"``, not estimated. A cycle whose mean ``az`` over the rigid
+    half is not gravity (:data:`GRAVITY_RANGE`) is flagged ``"units"``; the
+    likely mistake (``az`` in g, gravity removed, axis reversed; ``theta``
+    in degrees for a speed 57 times too high) is said once in :attr:`hints`.
     """
 
     def __init__(
@@ -257,10 +299,20 @@ class SlipEstimator:
         self._n_flagged: dict[str, int] = {}
         self._n_reference = 0
         self._n_misfit = 0
+        self._n_repaired_cycles = 0  # estimated cycles with samples left out
+        self._n_repaired = 0  # samples left out of estimated cycles (missing, unusable, outliers)
+        self._n_spikes = 0  # isolated outliers found
         self._noises: deque = deque(maxlen=NOISE_CYCLES)  # the last cycles' noise measures [g]
         self._noise_smooth = math.nan  # the last estimated cycle's smoothed noise [g]
+        self._hints: dict[str, str] = {}
         #: The feature row (:data:`slipest.features.FEATURE_NAMES`) of the last cycle that reached the estimator.
         self.last_features = None
+
+    @property
+    def hints(self) -> dict:
+        """What looks wrong with the input, once per kind (``"units"``, ``"degrees"``): a sentence for people
+        naming the likely mistake."""
+        return dict(self._hints)
 
     @property
     def noise_estimate(self) -> float:
@@ -278,9 +330,11 @@ class SlipEstimator:
 
     @property
     def counters(self) -> dict:
-        """``samples``, ``cycles`` (estimates emitted), ``cycles_ok``, ``cycles_flagged``,
+        """``samples``, ``cycles`` (estimates emitted), ``cycles_ok`` (estimated, repaired ones
+        included), ``cycles_flagged``,
         ``flagged_<reason>`` per reason, ``reference_used``, ``cycles_misfit`` (estimated cycles the
-        model did not explain, their intervals widened), ``noise_g`` (the running noise estimate [g]),
+        model did not explain, their intervals widened), ``cycles_repaired`` and ``samples_repaired``
+        (estimated cycles with samples left out, and how many), ``spikes`` (isolated outliers found), ``noise_g`` (the running noise estimate [g]),
         and the segmenter's counters prefixed ``segmenter_``."""
         c = {
             "samples": self._n_samples,
@@ -289,6 +343,9 @@ class SlipEstimator:
             "cycles_flagged": sum(self._n_flagged.values()),
             "reference_used": self._n_reference,
             "cycles_misfit": self._n_misfit,
+            "cycles_repaired": self._n_repaired_cycles,
+            "samples_repaired": self._n_repaired,
+            "spikes": self._n_spikes,
             "noise_g": self.noise_estimate,
         }
         for k, v in sorted(self._n_flagged.items()):
@@ -302,20 +359,46 @@ class SlipEstimator:
         self._n_flagged[quality] = self._n_flagged.get(quality, 0) + 1
         return Estimate.of_cycle(cyc, quality, ref)
 
+    def _clean(self, cyc) -> tuple:
+        """The cycle's samples to estimate from: ``(t, az, theta_phase, n_repaired)``, without the unusable
+        samples of its short holes (``cyc.n_missing`` counts them with the rows missing) and without its
+        isolated outliers (:func:`slipest.despike.outliers`)."""
+        tt, az, ph = cyc.t, cyc.az, cyc.theta_phase
+        repaired = cyc.n_missing
+        if repaired:
+            good = self.segmenter.usable(az)
+            tt, az, ph = tt[good], az[good], ph[good]
+        spikes = outliers(az)
+        n_spikes = int(np.count_nonzero(spikes))
+        if n_spikes:
+            keep = ~spikes
+            tt, az, ph = tt[keep], az[keep], ph[keep]
+            self._n_spikes += n_spikes
+            repaired += n_spikes
+        return tt, az, ph, repaired
+
     def _estimate(self, cyc, ref: float) -> Estimate:
         if cyc.quality != "ok":
             return self._flagged(cyc, cyc.quality, ref)
-        ph, tt = cyc.theta_phase, cyc.t
-        omega = _window_speed(tt, ph, math.pi / self.n_legs)
+        half = math.pi / self.n_legs
+        omega = _window_speed(cyc.t, cyc.theta_phase, half)
         lo, hi = self.filter.omega_range
         if not lo <= omega <= hi:
+            if lo <= omega * math.pi / 180.0 <= hi and "degrees" not in self._hints:
+                self._hints["degrees"] = (f"theta looks like it is in degrees (a leg speed of {omega:.3g} per s, "
+                                          f"{omega * math.pi / 180:.3g} if degrees): slipest wants radians")
             return self._flagged(cyc, "speed", ref)
-        measured = float(_sample_noise(ph, cyc.az, math.pi / self.n_legs)) / G
+        tt, az, ph, repaired = self._clean(cyc)
+        gravity = _rigid_mean(ph, az, half) / G
+        if math.isfinite(gravity) and not GRAVITY_RANGE[0] <= gravity <= GRAVITY_RANGE[1]:
+            self._hints.setdefault("units", _units_hint(gravity))
+            return self._flagged(cyc, "units", ref)
+        measured = float(_sample_noise(ph, az, half)) / G
         if math.isfinite(measured):
             self._noises.append(measured)
         noise = self.noise_estimate
         try:
-            f = cycle_features(ph, cyc.az, tt, n_legs=self.n_legs, noise=noise if math.isfinite(noise) else None)
+            f = cycle_features(ph, az, tt, n_legs=self.n_legs, noise=noise if math.isfinite(noise) else None)
         except ValueError:
             return self._flagged(cyc, "features", ref)
         if not all(map(math.isfinite, f.tolist())):  # (numpy's reductions cost more on 20 values)
@@ -327,8 +410,12 @@ class SlipEstimator:
             self._n_reference += 1
         if r.misfit > 1.0:
             self._n_misfit += 1
+        if repaired:
+            self._n_repaired_cycles += 1
+            self._n_repaired += repaired
         self._noise_smooth = float(f[_NOISE_SMOOTH])
-        return Estimate.of_cycle(cyc, "ok", ref, float(f[_DELTA_A]), r, float(f[_NOISE]))
+        return Estimate.of_cycle(cyc, "repaired" if repaired else "ok", ref, float(f[_DELTA_A]), r, float(f[_NOISE]),
+                                 repaired)
 
     def _emit(self, cycles, refs) -> list:
         out = []

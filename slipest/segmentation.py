@@ -39,17 +39,22 @@ How the stream is interpreted
   is emitted with quality ``"partial"`` when its window was not observed from
   its start (the first sample was already at or past ``m_k + complete_from``,
   by default ``m_k + w0``).
-* **NaN / inf.** A sample with a non-finite ``t`` or ``theta`` cannot be
-  placed: it is dropped and counted, and flags the current cycle ``"nan"``
-  unless that cycle's window is already over. A NaN ``az`` in the window flags
-  ``"nan"``; ``|az| >= full_scale`` (default 16 g) or ``az`` equal to one of
-  ``clip_values`` flags ``"saturated"``.
-* **Gaps.** Over the window plus its two neighbour samples (the one before the
-  first window sample and the one after the last), a time step larger than
-  ``max_gap`` or a theta step larger than ``max_dtheta`` flags ``"gap"``.
-  ``max_gap=None`` (default) means ``gap_factor`` (5) times the median time
-  step of that same span; ``max_dtheta=None`` means a tenth of the window
-  width.
+* **Missing samples and holes.** A sample with a non-finite ``t`` or
+  ``theta`` cannot be placed: it is dropped and counted. A window sample
+  whose ``az`` is NaN, at or beyond ``full_scale`` (inf included) (default 16 g) or
+  equal to one of ``clip_values`` is *unusable*: kept in the arrays, never
+  to be estimated from. Over the window plus its two neighbour samples (the
+  one before the first window sample and the one after the last), a *hole*
+  is the time between two consecutive usable samples; a hole longer than
+  ``max_gap`` flags the cycle ``"nan"`` when a NaN ``az`` lies in it,
+  ``"saturated"`` when a saturated one does, else ``"gap"``; shorter holes
+  are left for the estimator to bridge. ``max_gap=None`` (default) means
+  ``gap_factor`` (5) times the median time step of the span (5 ms at 1 kHz:
+  up to four samples in a row may be missing). ``n_missing`` counts the
+  unusable samples and the rows missing from the span (a time step of
+  ``m`` median steps is ``m - 1`` missing rows, dropped samples included).
+  A theta step larger than ``max_dtheta`` flags ``"gap"`` (``None``: a tenth
+  of the window width).
 * **Time.** A timestamp not after the previous one (backwards or duplicated)
   is counted; a window containing one is flagged ``"time"``.
 * **Stops.** No cycle can be emitted while theta does not advance. A window
@@ -82,7 +87,7 @@ import numpy as np
 
 from .units import G
 
-__all__ = ["QUALITIES", "QUALITY_PRIORITY", "LegCycle", "CycleSegmenter"]
+__all__ = ["QUALITIES", "QUALITY_PRIORITY", "LegCycle", "CycleSegmenter", "usable"]
 
 #: Flags in the order used to pick a cycle's ``quality`` (first present wins).
 QUALITY_PRIORITY = (
@@ -115,13 +120,15 @@ _DONE, _EMITTED, _FULL = 0, 1, 2
 @numba.njit(cache=True)
 def _window_checks(t, az, ph, has_pre, pre_t, pre_ph, has_post, post_t, post_ph, max_gap, gap_factor, max_dtheta,
                    stop_dtheta, stop_time, full_scale, clip_values):
-    """The sample checks of a closed window, one pass each (the cycle-close cost), as bits ``_F_*``.
+    """The sample checks of a closed window, one pass each (the cycle-close cost): ``(bits, n_missing)``,
+    the flags as bits ``_F_*`` and the samples missing or unusable (see "Missing samples and holes" in
+    the module docstring).
 
     ``t`` [s], ``az`` [m/s^2], ``ph`` [rad]: the window's samples (at least
-    one); the span checked for time order, gaps and stops is the window plus
+    one); the span checked for time order, holes and stops is the window plus
     its neighbours ``(pre_t, pre_ph)`` and ``(post_t, post_ph)`` when
-    ``has_pre`` / ``has_post``. ``max_gap`` [s]: NaN adapts it
-    (``gap_factor`` times the median positive time step of the span).
+    ``has_pre`` / ``has_post`` (taken as usable). ``max_gap`` [s]: NaN adapts
+    it (``gap_factor`` times the median positive time step of the span).
     ``max_dtheta``, ``stop_dtheta`` [rad], ``stop_time`` [s], ``full_scale``
     [m/s^2], ``clip_values`` [m/s^2]: see :class:`CycleSegmenter`.
     """
@@ -130,6 +137,7 @@ def _window_checks(t, az, ph, has_pre, pre_t, pre_ph, has_post, post_t, post_ph,
     m = n + a0 + (1 if has_post else 0)
     ts = np.empty(m)
     ps = np.empty(m)
+    bad = np.zeros(m, np.int64)  # 0 usable, 1 NaN az, 2 saturated (inf included)
     ts[a0:a0 + n] = t
     ps[a0:a0 + n] = ph
     if has_pre:
@@ -138,7 +146,21 @@ def _window_checks(t, az, ph, has_pre, pre_t, pre_ph, has_post, post_t, post_ph,
     if has_post:
         ts[m - 1] = post_t
         ps[m - 1] = post_ph
+    n_bad = 0
+    for i in range(n):
+        a = az[i]
+        if a != a:
+            bad[a0 + i] = 1
+        elif abs(a) >= full_scale:
+            bad[a0 + i] = 2
+        else:
+            for c in clip_values:
+                if a == c:
+                    bad[a0 + i] = 2
+        if bad[a0 + i]:
+            n_bad += 1
     bits = 0
+    n_missing = n_bad
     if m >= 2:
         pos = np.empty(m - 1)
         npos = 0
@@ -160,14 +182,32 @@ def _window_checks(t, az, ph, has_pre, pre_t, pre_ph, has_post, post_t, post_ph,
                 jump = True
         if jump:
             bits |= _F_GAP
-        elif npos:
-            if not math.isnan(max_gap):
-                if pmax > max_gap:
-                    bits |= _F_GAP
-            # adaptive: gap_factor times the median step; no step above gap_factor times the
-            # smallest (the usual even sampling) decides it without the median
-            elif pmax > gap_factor * pmin and pmax > gap_factor * np.median(pos[:npos]):
-                bits |= _F_GAP
+        # the median step is needed only when some step or some unusable sample may make a hole or a missing row
+        if npos and (n_bad or pmax > 1.5 * pmin):
+            med = np.median(pos[:npos])
+            limit = max_gap if not math.isnan(max_gap) else gap_factor * med
+            for i in range(1, m):  # rows missing from the stream
+                d = ts[i] - ts[i - 1]
+                if d > 1.5 * med:
+                    n_missing += int(round(d / med)) - 1
+            last = -1  # the last usable sample
+            why = 0
+            for i in range(m):
+                if bad[i]:
+                    why |= 1 << (bad[i] - 1)
+                    continue
+                if last >= 0 and ts[i] - ts[last] > limit:
+                    bits |= (_F_NAN if why & 1 else 0) | (_F_SATURATED if why & 2 else 0) | (0 if why else _F_GAP)
+                last = i
+                why = 0
+            if last >= 0 and why:  # unusable samples to the end of the span: a hole from the last usable one
+                if ts[m - 1] - ts[last] > limit:
+                    bits |= (_F_NAN if why & 1 else 0) | (_F_SATURATED if why & 2 else 0)
+            elif last < 0:  # nothing usable
+                bits |= (_F_NAN if why & 1 else 0) | (_F_SATURATED if why & 2 else 0)
+        elif n_bad == n:  # nothing usable in the window
+            for i in range(n):
+                bits |= _F_NAN if bad[a0 + i] == 1 else _F_SATURATED
         # stopped: from a sample, theta's running maximum takes more than stop_time to rise by stop_dtheta
         thr = np.empty(m)
         run = -np.inf
@@ -183,17 +223,9 @@ def _window_checks(t, az, ph, has_pre, pre_t, pre_ph, has_post, post_t, post_ph,
             if ts[jj - 1] - ts[i] > stop_time:
                 bits |= _F_STOPPED
                 break
-    for i in range(n):
-        a = az[i]
-        if math.isnan(a):
-            bits |= _F_NAN
-        elif abs(a) >= full_scale:
-            bits |= _F_SATURATED
-        else:
-            for c in clip_values:
-                if a == c:
-                    bits |= _F_SATURATED
-    return bits
+    elif n_bad:  # one sample, unusable
+        bits |= _F_NAN if bad[a0] == 1 else _F_SATURATED
+    return bits, n_missing
 
 
 _f8, _i8, _b1 = np.float64, np.int64, np.bool_
@@ -210,13 +242,14 @@ _STATE = np.dtype([
     ("k", _i8), ("mk", _f8), ("t_open", _f8), ("synced_here", _b1), ("sync_ph", _f8),
     # the open cycle's window: samples stored (n) and seen (nwin), its neighbour samples, NaN seen
     ("n", _i8), ("nwin", _i8), ("overflow", _b1), ("has_pre", _b1), ("pre_t", _f8), ("pre_ph", _f8),
-    ("has_post", _b1), ("post_t", _f8), ("post_ph", _f8), ("nanflag", _b1),
+    ("has_post", _b1), ("post_t", _f8), ("post_ph", _f8),
     # counters
     ("samples_seen", _i8), ("samples_invalid", _i8), ("samples_reverse", _i8), ("samples_overflow", _i8),
     ("time_backwards", _i8), ("time_duplicate", _i8), ("wraps", _i8), ("reversals", _i8), ("resyncs", _i8),
     ("cycles_skipped", _i8),
     # the cycle just emitted (its window is buf[:, :e_n] until _advance runs again)
     ("e_k", _i8), ("e_t_open", _f8), ("e_t_end", _f8), ("e_n", _i8), ("e_nwin", _i8), ("e_bits", _i8),
+    ("e_missing", _i8),
 ])
 
 
@@ -228,7 +261,6 @@ def _open_cycle(s):
     s.overflow = False
     s.has_pre = False
     s.has_post = False
-    s.nanflag = False
 
 
 @numba.njit(cache=True)
@@ -237,6 +269,7 @@ def _emit(s, buf, clip_values, t_end, reason):
     ``_F_REVERSE``, or ``_F_PARTIAL`` for a window cut short by the end of the stream)."""
     n = s.n
     bits = reason
+    missing = 0
     partial = s.synced_here and s.sync_ph >= s.complete_from
     if partial:
         bits |= _F_PARTIAL
@@ -245,13 +278,12 @@ def _emit(s, buf, clip_values, t_end, reason):
         n = 0
     else:
         if n:
-            bits |= _window_checks(buf[0, :n], buf[1, :n], buf[2, :n], s.has_pre, s.pre_t, s.pre_ph, s.has_post,
-                                   s.post_t, s.post_ph, s.max_gap, s.gap_factor, s.max_dtheta, s.stop_dtheta,
-                                   s.stop_time, s.full_scale, clip_values)
+            wbits, missing = _window_checks(buf[0, :n], buf[1, :n], buf[2, :n], s.has_pre, s.pre_t, s.pre_ph,
+                                            s.has_post, s.post_t, s.post_ph, s.max_gap, s.gap_factor, s.max_dtheta,
+                                            s.stop_dtheta, s.stop_time, s.full_scale, clip_values)
+            bits |= wbits
         elif not partial and reason == 0:
             bits |= _F_GAP
-        if s.nanflag:
-            bits |= _F_NAN
     if s.nwin < s.min_samples:
         bits |= _F_SPARSE
     s.e_k = s.k
@@ -260,6 +292,7 @@ def _emit(s, buf, clip_values, t_end, reason):
     s.e_n = n
     s.e_nwin = s.nwin
     s.e_bits = bits
+    s.e_missing = missing if n and not s.overflow else 0
 
 
 @numba.njit(cache=True)
@@ -282,8 +315,6 @@ def _advance(st, buf, t, az, theta, i, clip_values):
             raw = theta[i]
             if not (ti - ti == 0.0 and raw - raw == 0.0):
                 s.samples_invalid += 1
-                if s.mode == _FORWARD and s.tmax - s.mk < s.w1:
-                    s.nanflag = True
                 i += 1
                 continue
             th = raw
@@ -406,6 +437,16 @@ def _finish(st, buf, clip_values):
     return emitted
 
 
+def usable(az, full_scale: float = 16 * G, clip_values=()) -> np.ndarray:
+    """Mask of the samples whose ``az`` [m/s^2] may be estimated from: finite, below ``full_scale`` in
+    magnitude, not one of ``clip_values`` (the segmenter's own rule; give it the segmenter's settings)."""
+    az = np.asarray(az, dtype=float)
+    ok = np.isfinite(az) & (np.abs(az) < full_scale)
+    for c in clip_values:
+        ok &= az != c
+    return ok
+
+
 @dataclass(frozen=True, eq=False)
 class LegCycle:
     """One closed leg cycle.
@@ -419,7 +460,11 @@ class LegCycle:
     window, in arrival order (read-only arrays). ``n_samples``: samples the
     window had (equal to ``len(t)`` except for ``"too_long"``, whose arrays
     are empty). ``quality``: ``"ok"`` or why it must not be estimated;
-    ``flags``: every reason found.
+    ``flags``: every reason found. ``n_missing``: samples of the window
+    missing or unusable (NaN/inf or saturated ``az``, rows absent from the
+    stream) in holes short enough to bridge; an ``"ok"`` cycle's unusable
+    samples are still in the arrays and must be left out of its features
+    (:meth:`CycleSegmenter.usable`).
     """
 
     k: int
@@ -431,6 +476,7 @@ class LegCycle:
     n_samples: int
     quality: str
     flags: tuple
+    n_missing: int = 0
 
     @property
     def ok(self) -> bool:
@@ -447,6 +493,7 @@ class LegCycle:
             and self.n_samples == other.n_samples
             and self.quality == other.quality
             and self.flags == other.flags
+            and self.n_missing == other.n_missing
             and np.array_equal(self.t, other.t, equal_nan=True)
             and np.array_equal(self.az, other.az, equal_nan=True)
             and np.array_equal(self.theta_phase, other.theta_phase, equal_nan=True)
@@ -457,7 +504,7 @@ class LegCycle:
     def __repr__(self):
         return (
             f"LegCycle(k={self.k}, t_start={self.t_start:.6f}, t_end={self.t_end:.6f}, "
-            f"n_samples={self.n_samples}, quality={self.quality!r}, flags={self.flags})"
+            f"n_samples={self.n_samples}, n_missing={self.n_missing}, quality={self.quality!r}, flags={self.flags})"
         )
 
 
@@ -585,6 +632,11 @@ class CycleSegmenter:
         self._st = self._fresh.copy()
         self._c_cycles = dict.fromkeys(QUALITIES, 0)
 
+    def usable(self, az) -> np.ndarray:
+        """Mask of the samples of a cycle's ``az`` [m/s^2] that may be estimated from (:func:`usable` with
+        this segmenter's ``full_scale`` and ``clip_values``)."""
+        return usable(az, self.full_scale, self.clip_values)
+
     def open_window(self) -> tuple[np.ndarray, np.ndarray]:
         """The samples the open cycle's window holds so far: ``(t [s], theta_phase [rad])`` (views, read
         them before the next push)."""
@@ -672,4 +724,4 @@ class CycleSegmenter:
         window.flags.writeable = False
         t, az, ph = window
         return LegCycle(int(s["e_k"]), float(s["e_t_open"]), float(s["e_t_end"]), t, az, ph, int(s["e_nwin"]),
-                        quality, flags)
+                        quality, flags, int(s["e_missing"]))

@@ -51,15 +51,15 @@ def test_csv_to_stdout_one_row_per_cycle(log_path, capsys):
     assert tuple(rows[0].keys()) == COLUMNS
     for needed in ("cycle", "t_end", "delta_a", "slip", "slip_std", "dphi", "dphi_std", "quality"):
         assert needed in COLUMNS
-    # the log starts at theta = -pi/4: a 1-sample "partial" cycle -1, then every whole cycle but the last
-    assert [int(r["cycle"]) for r in rows] == list(range(-1, N_CYCLES - 1))
-    assert rows[0]["quality"] == "partial" and rows[0]["slip"] == "nan"
+    # the log starts at theta = -pi/4 (written as -0.7853982) and ends on cycle N-1's last sample: N cycles, N
+    # estimates (the last one at the end of the log)
+    assert [int(r["cycle"]) for r in rows] == list(range(N_CYCLES))
     ok = [r for r in rows if r["quality"] == "ok"]
-    assert len(ok) == N_CYCLES - 1
+    assert len(ok) == N_CYCLES and "IMU noise 0.01" in err
     for r in ok:
         assert 0.0 <= float(r["slip"]) <= 0.55 and float(r["slip_std"]) > 0 and float(r["dphi_std"]) > 0
     # summary on stderr only
-    assert "leg cycles" in err and f"{N_CYCLES - 1} estimated" in err
+    assert "leg cycles" in err and f"{N_CYCLES} estimated" in err
     assert "truth" not in err
 
 
@@ -82,11 +82,11 @@ def test_jsonl_and_truth_summary(log_path, capsys):
     assert rc == 0
     recs = [json.loads(line) for line in out.splitlines()]
     assert len(recs) == N_CYCLES and list(recs[0].keys()) == list(COLUMNS)
-    assert recs[0]["slip"] is None and recs[0]["quality"] == "partial"  # NaN -> null
-    assert all(isinstance(r["slip"], float) for r in recs[1:])
+    assert all(isinstance(r["slip"], float) for r in recs)
+    assert recs[0]["slip_ref"] is not None and all(r["misfit"] is None or r["misfit"] >= 1 for r in recs)
     assert "truth: slip RMSE" in err and "95% interval coverage" in err
     # the summary's RMSE is the RMSE of the written rows against slip_ref
-    e = np.array([r["slip"] - r["slip_ref"] for r in recs[1:]])
+    e = np.array([r["slip"] - r["slip_ref"] for r in recs])
     rmse = float(err.split("truth: slip RMSE ")[1].split(",")[0])
     assert rmse == pytest.approx(float(np.sqrt(np.mean(e**2))), abs=1e-4)
     # the metadata give phiS and phiD: dphi is compared too
@@ -161,6 +161,7 @@ def test_model_option_estimates_another_geometry(tmp_path, capsys):
     rc, out, err = run([log6], capsys)
     assert rc == 2 and "4-leg" in err and out == ""
     model6 = _model_for_legs(tmp_path / "six_legs.npz", 6, params.omega)
+    capsys.readouterr()  # (the training's own output)
     rc, out, err = run([log6, "--model", model6], capsys)
     assert rc == 0, err
     rows = list(csv.DictReader(io.StringIO(out)))
@@ -172,3 +173,31 @@ def test_model_option_estimates_another_geometry(tmp_path, capsys):
     bad.write_text("{not json")
     rc, out, err = run([log6, "--model", bad], capsys)
     assert rc == 2 and "bad.json" in err and "not an inverse model file" in err and out == ""
+
+
+@pytest.mark.parametrize("mistake, hint", [
+    ("az_in_g", "az looks like it is in g"),
+    ("gravity_removed", "az has no gravity in it"),
+    ("axis_down", "az points down"),
+    ("theta_degrees", "theta looks like it is in degrees"),
+])
+def test_a_unit_mistake_is_named_and_nothing_is_estimated(log_path, tmp_path, capsys, mistake, hint):
+    from slipest.io.log_csv import read_log
+
+    d = read_log(log_path)
+    az, theta = d.az, d.theta
+    az = {"az_in_g": az / 9.80665, "gravity_removed": az - 9.80665, "axis_down": -az}.get(mistake, az)
+    if mistake == "theta_degrees":
+        theta = np.degrees(theta)
+    bad = tmp_path / f"{mistake}.csv"
+    with LogWriter(bad, ("t", "az", "theta"), metadata={"nL": 4}) as w:
+        w.write(d.t, az, theta)
+    rc, out, err = run([bad], capsys)
+    assert rc == 1, err
+    rows = list(csv.DictReader(io.StringIO(out)))
+    assert rows and not any(r["quality"] == "ok" for r in rows)
+    assert hint in err and "no leg cycle was estimated" in err
+    if mistake == "az_in_g":  # JSON lines: NaN is null
+        rc, out, err = run([bad, "--format", "jsonl"], capsys)
+        recs = [json.loads(line) for line in out.splitlines()]
+        assert rc == 1 and recs and all(r["slip"] is None and r["quality"] == "units" for r in recs)

@@ -146,7 +146,7 @@ class _Display:
             self._stretch = stretch
             print(f"      -- stretch {stretch + 1}: {_STRETCHES[stretch]} --", file=self.out, flush=True)
         t = (k + 1) * self.period  # scenario time at the end of the cycle [s]
-        if est.quality != "ok" or truth is None:
+        if not est.ok or truth is None:
             self.flagged[est.quality] = self.flagged.get(est.quality, 0) + 1
             print(f"{k:>5} {t:7.1f}  {'not estimated':>15} {'':>6}   {'':>20} {'':>6}  {est.quality}",
                   file=self.out, flush=True)

@@ -29,8 +29,9 @@ truth in it is still a blind test; --truth only compares.
 Several logs or a folder: one summary table instead (per log and wheel:
 cycles, estimated, mean slip, the soil at the end, verdict, error), the
 logs replayed in parallel processes (--jobs) or on a Dask cluster
-(--scheduler, pip install 'slipest[dask]'). Exit status 1 when a log failed
-(its row says why), 2 on a bad single log or option.
+(--scheduler, pip install 'slipest[dask]'). Exit status: 1 when a log failed
+(its row says why) or a single log had no cycle estimated (its summary says
+why), 2 on a bad single log or option.
 
 Examples::
 
@@ -195,7 +196,7 @@ def _replay_one(args, source, name: str) -> int:
             print(f"wrote {plot.plot_replay(args.plot, series, title=name)}", file=sys.stderr)
         except (ValueError, OSError) as exc:
             return _fail(f"--plot {args.plot}: {exc}")
-    return 0
+    return 0 if result.estimated else 1
 
 
 def _replay_many(args, logs: list[str]) -> int:

@@ -48,6 +48,7 @@ class WheelState:
     estimates: int = 0
     cycles_seen: int = 0
     qualities: dict = field(default_factory=dict)
+    hints_said: set = field(default_factory=set)
 
 
 class LiveEstimation:
@@ -248,7 +249,7 @@ class LiveEstimation:
             q = str(getattr(est, "quality", "ok"))
             st.qualities[q] = st.qualities.get(q, 0) + 1
             slip = getattr(est, "slip", math.nan)
-            if q != "ok" or slip != slip:
+            if not getattr(est, "ok", q == "ok") or slip != slip:
                 self.c["cycles_flagged"] += 1
             else:
                 st.estimates += 1
@@ -262,6 +263,12 @@ class LiveEstimation:
             if latency == latency:
                 self._estimate_latency.append(latency)
             self.on_estimate(wheel, est, {"intake": intake, "latency": latency, "ready": now})
+        hints = getattr(st.estimator, "hints", None)
+        if estimates and hints and len(hints) > len(st.hints_said):
+            for kind, text in hints.items():
+                if kind not in st.hints_said:
+                    st.hints_said.add(kind)
+                    self._notices.append(f"wheel {wheel}: {text}")
 
     def flush(self, force: bool = False) -> None:
         """Write the recording's buffered samples (every 0.1 s at most unless ``force``)."""

@@ -144,6 +144,7 @@ class WheelTally:
     last_ok: object = None
     estimator_counters: dict = field(default_factory=dict)
     stream_counters: dict = field(default_factory=dict)
+    hints: dict = field(default_factory=dict)
 
     def add(self, e) -> None:
         self.cycles += 1
@@ -202,7 +203,24 @@ class ReplayResult:
                 + (" (" + ", ".join(f"{k[len('flagged_'):]} {v}" for k, v in c.items() if k.startswith("flagged_"))
                    + ")" if c.get("cycles_flagged") else "")
                 + f"; method {o.method}, {self.legs} legs"
-                + (f", reference slip used on {c.get('reference_used', 0)} cycles" if o.use_reference else ""))
+                + (f", reference slip used on {c.get('reference_used', 0)} cycles" if o.use_reference else "")
+                + (f"; IMU noise {c['noise_g']:.4f} g" if c.get("noise_g", math.nan) == c.get("noise_g") else "")
+                + (f"; {c['cycles_misfit']} estimated cycle(s) the model did not explain (intervals widened)"
+                   if c.get("cycles_misfit") else ""))
+
+    @staticmethod
+    def _advice_lines(prefix: str, w: "WheelTally") -> list[str]:
+        """What looks wrong with a wheel's data, and a model that does not fit it, for people."""
+        c = w.estimator_counters
+        lines = [f"replay: {prefix}the input looks wrong: {text}" for text in w.hints.values()]
+        ok = c.get("cycles_ok", 0)
+        if ok and c.get("cycles_misfit", 0) >= max(3, 0.2 * ok):
+            lines.append(f"replay: {prefix}the model does not explain {c['cycles_misfit']} of {ok} estimated cycles: "
+                         "this rover or soil differs from the simulator (the intervals were widened; "
+                         "docs/estimator.md says what misfit means)")
+        if w.cycles and not w.estimated:
+            lines.append(f"replay: {prefix}no leg cycle was estimated (the flagged reasons above say why)")
+        return lines
 
     def summary_lines(self) -> list[str]:
         """The replay's summary, for people (stderr): what was read, cycles estimated and flagged (and
@@ -234,6 +252,8 @@ class ReplayResult:
                              f"out, {s['in_joint_gap']} in joint-state gaps (not estimated)"
                              + (f"; {s['slip_messages']} reference slips" if o.bag.slip else ""))
             lines.append("replay: " + self._cycles_line(c))
+        for wheel, w in sorted(self.wheels.items(), key=lambda kv: -1 if kv[0] is None else kv[0]):
+            lines += self._advice_lines("" if wheel is None else f"wheel {wheel}: ", w)
         if self.estimator_errors:
             lines.append(f"replay: the estimator failed on {self.estimator_errors} push(es) (their cycles are "
                          f"missing); last: {self.last_error}")
@@ -359,6 +379,7 @@ class Replay:
             if on_estimate is not None:
                 on_estimate(None, e)
         tally.estimator_counters = est.counters
+        tally.hints = est.hints
         source = self._reader.counters() if self.kind == "ros2" else {}
         return {None: tally}, source
 
@@ -390,6 +411,7 @@ class Replay:
         for wheel, st in live.wheels.items():
             tally = tallies.setdefault(wheel, self._tally())
             tally.estimator_counters = st.estimator.counters
+            tally.hints = getattr(st.estimator, "hints", {})
             tally.stream_counters = counters[f"wheel{wheel}"]
         self.estimator_errors, self.last_error = counters["estimator_errors"], live.last_error
         return tallies, self._reader.counters()
