@@ -14,6 +14,10 @@ is a Hampel filter on the residual from a local median:
 * sample ``i`` is an outlier when ``|r[i]| > max(K s, FLOOR)``
   (:data:`K` = 6, :data:`FLOOR` = 0.25 g: smaller glitches barely move the
   time-smoothed features).
+* the two samples at each end of the cycle are not judged: their median
+  is one-sided, so a real step there (the next leg's touchdown, which a
+  rounded leg angle can put in the cycle's last sample) would look like a
+  spike; a glitch there touches one sample at the edge of the window.
 
 On clean simulated cycles over the estimator's envelope (IMU 200-2000 Hz,
 noise 0-0.03 g) it flags no sample (``tests/test_despike.py``); at 1 kHz it
@@ -90,6 +94,8 @@ def _outliers(az, k, floor, block, out):
         bs[b] = np.median(work[:m])
     count = 0
     for i in range(n):
+        out[i] = False
+    for i in range(2, n - 2):  # the two samples at each end have a one-sided median: a step there is no spike
         b = i // block
         s = bs[b]
         if b > 0 and bs[b - 1] > s:

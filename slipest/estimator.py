@@ -63,7 +63,7 @@ _NOISE_SMOOTH = INDEX["noise_smooth"]
 #: Default probability per cycle that the soil changed [-].
 DEFAULT_HAZARD = 0.01
 #: Default tempering of a cycle's soil likelihood [-] (docs/estimator.md).
-DEFAULT_SOIL_TEMPER = 0.3
+DEFAULT_SOIL_TEMPER = 0.15
 #: Default forgetting of the soil posterior per update [-] (1: none; see module docstring).
 DEFAULT_FORGET = 0.9
 #: Default tempering of a cycle's slip likelihood [-] (widens the slip posterior for the surrogate's error).

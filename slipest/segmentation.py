@@ -34,8 +34,8 @@ How the stream is interpreted
   rises ``reverse_tol`` above its running minimum; the segmenter then
   re-synchronises on that sample (its first cycle may be ``"partial"``).
 * **Partial.** The first cycle after the stream starts (or re-synchronises)
-  on a sample (a sample less than 1e-6 rad before a cycle's start, as a
-  rounded angle in a log may be, starts that cycle)
+  on a sample (a sample less than 1e-4 rad before a cycle's start, as an
+  angle rounded in a log or a CAN frame (0.1 mrad) may be, starts that cycle)
   is emitted with quality ``"partial"`` when its window was not observed from
   its start (the first sample was already at or past ``m_k + complete_from``,
   by default ``m_k + w0``).
@@ -107,6 +107,7 @@ QUALITIES = ("ok",) + QUALITY_PRIORITY
 _TWO_PI = 2.0 * math.pi
 _INIT, _FORWARD, _REVERSE = 0, 1, 2  # modes; _INIT (a fresh state) until the first valid sample
 _CLOSE_EPS = 1e-6  # rad; pre-check margin before the exact floor() test
+_SYNC_EPS = 1e-4  # rad; a first sample this close before a cycle's start starts that cycle (a rounded angle)
 # a cycle's flags as bits, bit b standing for QUALITY_PRIORITY[b]
 _F_REVERSE, _F_TOO_LONG, _F_PARTIAL, _F_TIME, _F_GAP, _F_STOPPED, _F_NAN, _F_SATURATED, _F_SPARSE = (
     1 << b for b in range(len(QUALITY_PRIORITY)))
@@ -183,7 +184,8 @@ def _window_checks(t, az, ph, has_pre, pre_t, pre_ph, has_post, post_t, post_ph,
         if jump:
             bits |= _F_GAP
         # the median step is needed only when some step or some unusable sample may make a hole or a missing row
-        if npos and (n_bad or pmax > 1.5 * pmin):
+        # (steps all alike are no hole unless a given max_gap is shorter than them)
+        if npos and (n_bad or pmax > 1.5 * pmin or pmax > max_gap):
             med = np.median(pos[:npos])
             limit = max_gap if not math.isnan(max_gap) else gap_factor * med
             for i in range(1, m):  # rows missing from the stream
@@ -375,7 +377,7 @@ def _advance(st, buf, t, az, theta, i, clip_values):
                 # start a cycle on this sample with no history
                 s.mode = _FORWARD
                 s.tmax = th
-                s.k = math.floor((th + s.h + _CLOSE_EPS) * s.invP)  # a hair before a cycle's start: that cycle
+                s.k = math.floor((th + s.h + _SYNC_EPS) * s.invP)  # a hair before a cycle's start: that cycle
                 s.mk = s.k * s.P
                 s.t_open = ti
                 s.synced_here = True

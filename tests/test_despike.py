@@ -67,3 +67,15 @@ def test_the_running_median_of_five_is_numpys():
             a = rng.integers(0, 5, n).astype(float)  # ties too
             for i in range(n):
                 assert _median5(a, i, n) == np.median(a[max(0, i - 2) : i + 3])
+
+
+def test_the_two_samples_at_each_end_are_not_judged():
+    """A step in a cycle's last sample (the next leg's touchdown, put there by a rounded leg angle) is no
+    outlier; a glitch three samples in is found."""
+    rng = np.random.default_rng(4)
+    az = 14.5 + rng.normal(0.0, 0.01 * G, 400)
+    az[-1] = 9.9  # a step of -0.47 g in the last sample
+    az[0] = 20.0
+    assert not outliers(az).any()
+    az[2] += 3.0 * G
+    assert np.flatnonzero(outliers(az)).tolist() == [2]

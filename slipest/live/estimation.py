@@ -95,6 +95,7 @@ class LiveEstimation:
         self.sim_speed = sim_speed
         self.on_estimate = on_estimate or (lambda wheel, est, info: None)
         self._factory = estimator_factory or self._default_factory
+        self._closed = False
         self.recorder = (Recorder(record, n_legs=n_legs, source=source.describe(), overwrite=overwrite)
                          if record else None)
         self.wheels: dict[int, WheelState] = {}
@@ -278,7 +279,10 @@ class LiveEstimation:
     def close(self) -> None:
         """Hand on the samples the streams still hold, end every wheel's stream (its last cycle, which no
         sample will close, is estimated: see :meth:`slipest.online.SlipEstimator.finish`), then write, flush
-        and close the recording."""
+        and close the recording. Idempotent: a second call does nothing."""
+        if self._closed:
+            return
+        self._closed = True
         try:
             for wheel, st in self.wheels.items():
                 self._push(wheel, st, st.stream.flush())
