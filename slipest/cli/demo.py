@@ -223,9 +223,7 @@ def run(args: argparse.Namespace) -> int:
     scenario = Scenario.from_dict(doc)
     period = 2 * math.pi / (scenario.n_legs * scenario.omega)
     n_cycles = len(scenario.cycles) if args.cycles is None else max(1, min(args.cycles, len(scenario.cycles)))
-    duration = n_cycles * period
-    if n_cycles < len(scenario.cycles):
-        duration += 0.05  # the first samples of the next cycle close the last one driven
+    duration = n_cycles * period  # the last cycle driven is estimated at the end of the stream (finish)
     speed = args.speed
 
     def _term(signum, frame):
