@@ -19,7 +19,7 @@ Two directions, both closed form:
 Uncertainty: the equation carries none of its own; the standard deviation
 reported is the calibration's end-to-end slip RMSE of Eq. 5.15 over its
 sweep (``rmse_end_to_end``), an honest, soil-independent figure. In this
-model that RMSE is large (spec section 5: the second-level laws do not
+model that RMSE is large (docs/model.md section 5: the second-level laws do not
 hold); the number is reported, not tuned.
 
 :class:`Eq515Tracker` is the recursive use: a 1-state Kalman filter on

@@ -37,6 +37,7 @@ from typing import Callable
 
 import numpy as np
 
+from slipest.io.device_stream import STUCK_TIME
 from slipest.io.log_csv import LogFormatError, LogReader
 from slipest.io.rosbag import BagTopics
 from slipest.online import SlipEstimator
@@ -61,7 +62,8 @@ class ReplayOptions:
     log's reference (needs one).  ``carry_reference``: put the reference on the estimates
     (``slip_ref``) without comparing.  ``skip_bad``: count and skip malformed CSV rows.  ``log_format``:
     ``"auto"`` or one of :data:`~slipest.offline.logs.KINDS`.  ``wheels``: CAN wheels to estimate (None:
-    all).  ``stuck_samples``: see :class:`~slipest.io.device_stream.WheelStream`.  ``bag``: where the
+    all).  ``stuck_time`` [s] (default 20 ms, as live) or ``stuck_samples`` (a fixed run length; 0:
+    never): see :class:`~slipest.io.device_stream.WheelStream`.  ``bag``: where the
     samples are in a ROS 2 bag.  ``chunk_rows``: samples per push (memory)."""
 
     legs: int | None = None
@@ -74,7 +76,8 @@ class ReplayOptions:
     skip_bad: bool = False
     log_format: str = "auto"
     wheels: tuple | None = None
-    stuck_samples: int = 50
+    stuck_time: float = STUCK_TIME
+    stuck_samples: int | None = None
     bag: BagTopics = BagTopics()
     chunk_rows: int = 65536
 
@@ -401,7 +404,7 @@ class Replay:
         # (slip_ref) when pass_reference, as the live runtime hands them on with its use_reference
         live = LiveEstimation(self._reader, n_legs=self.legs, use_reference=o.pass_reference,
                               wheels=list(o.wheels) if o.wheels else None, stuck_samples=o.stuck_samples,
-                              on_estimate=collect, estimator_factory=self._estimator)
+                              stuck_time=o.stuck_time, on_estimate=collect, estimator_factory=self._estimator)
         try:
             for batches in self._reader.batches():
                 live.feed(batches)
