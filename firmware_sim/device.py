@@ -37,7 +37,7 @@ from firmware_sim.faults import FaultInjector, FaultPlan
 from firmware_sim.link import FRAME_TABLE_DTYPE, KIND_IMU, KIND_REF, Link, LinkDown
 from slipest.latency import latency_summary
 from slipest.model.scenario import Scenario
-from slipest.model.stream import iter_stream
+from slipest.model.stream import cycle_starts, iter_stream
 
 #: Send-log status of a frame.
 SENT, DROPPED, CORRUPTED, LOST_DISCONNECTED, UNSENT_NO_PEER, UNSENT_LINK_ERROR = range(6)
@@ -52,8 +52,9 @@ def wrap_angle(theta):
 class ScenarioFeed:
     """Frame tables of ``len(scenarios)`` wheel-legs, merged in time order.
 
-    Every wheel's scenario must have the same rate, leg count and leg speed
-    (they share the timeline); seeds and slips may differ.  ``duration``
+    Every wheel's scenario must have the same rate, leg count and leg
+    speeds, cycle by cycle (they share the timeline); seeds and slips may
+    differ.  ``duration``
     [s] stops the stream early.  Iterating yields frame tables (structured
     arrays of dtype :data:`~firmware_sim.link.FRAME_TABLE_DTYPE`) of
     ``chunk_cycles`` leg cycles."""
@@ -68,24 +69,24 @@ class ScenarioFeed:
         if not scenarios:
             raise ValueError("a device needs at least one wheel")
         first = scenarios[0]
+        starts = cycle_starts(first)
         for w, sc in enumerate(scenarios):
-            same = (sc.rate, sc.n_legs, sc.omega, len(sc.cycles)) == (first.rate, first.n_legs, first.omega,
-                                                                       len(first.cycles))
-            if not same:
-                raise ValueError(f"wheel {w}: every wheel's scenario needs the same rate, legs, leg speed and cycles")
+            same = (sc.rate, sc.n_legs, len(sc.cycles)) == (first.rate, first.n_legs, len(first.cycles))
+            if not (same and np.allclose(cycle_starts(sc), starts, rtol=0.0, atol=1e-9)):
+                raise ValueError(f"wheel {w}: every wheel's scenario needs the same rate, legs, leg speeds and cycles")
         self.scenarios = list(scenarios)
         self.send_reference = send_reference
         self.duration = duration
         self.chunk_cycles = chunk_cycles
         self.n_wheels = len(scenarios)
-        period = 2 * math.pi / (first.n_legs * first.omega)
         n_cycles = len(first.cycles)
-        if duration is not None:
-            n_cycles = min(n_cycles, max(1, math.ceil(duration / period)))
-        self.period = period
+        if duration is not None:  # the cycles that start before it
+            n_cycles = min(n_cycles, max(1, int(np.searchsorted(starts, duration, side="left"))))
+        #: mean leg-cycle duration of the stream [s]
+        self.period = float(starts[n_cycles] / n_cycles)
         self.n_cycles = n_cycles
         #: frames the whole stream holds (an estimate of the IMU part is exact)
-        self.expected_imu_frames = math.ceil(n_cycles * period * first.rate - 1e-9) * self.n_wheels
+        self.expected_imu_frames = math.ceil(starts[n_cycles] * first.rate - 1e-9) * self.n_wheels
         if duration is not None:
             by_duration = math.ceil(duration * first.rate - 1e-9) * self.n_wheels
             self.expected_imu_frames = min(self.expected_imu_frames, by_duration)

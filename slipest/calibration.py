@@ -14,7 +14,7 @@ The calibration file is a JSON dict (schema :data:`SCHEMA_DOC`), versioned by
 ``format_version``; :func:`load_calibration` / :func:`save_calibration` are
 the only I/O here. The shipped file ``slipest/data/calibration.json`` is
 written by ``tools/calibrate.py``, which also fits and documents the forward
-calibration (``Da`` as a function of slip and soil) the spec recommends
+calibration (``Da`` as a function of slip and soil) docs/model.md (section 5) recommends
 (``tools/forward_calibration.py``); the runtime reads only ``model`` and
 ``eq515``.
 """

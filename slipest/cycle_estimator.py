@@ -27,7 +27,10 @@ class CycleEstimate:
     cycle (known: std 0; not estimated: NaN); change_prob: posterior
     probability that the soil changed at this cycle [-] (NaN when the
     method has no change detector); used_reference: the reference slip
-    given with the cycle updated what the method learns.
+    given with the cycle updated what the method learns; misfit: how much
+    the cycle's features exceed what the method's model explains (1: within
+    it; above 1: the likelihood was widened by that factor; NaN: the method
+    does not check).
     """
 
     slip: float
@@ -42,23 +45,25 @@ class CycleEstimate:
     phiD_std: float
     change_prob: float
     used_reference: bool
+    misfit: float = math.nan
 
     @classmethod
     def nan(cls) -> "CycleEstimate":
         n = math.nan
-        return cls(n, n, n, n, n, n, n, n, n, n, n, False)
+        return cls(n, n, n, n, n, n, n, n, n, n, n, False, n)
 
 
 class CycleEstimator(ABC):
     """One estimation method, fed one leg cycle at a time, in order.
 
-    ``model_legs`` and ``model_omega`` [rad/s]: the wheel-leg geometry and
-    leg speed the method's model was made for (the online layer refuses
-    another number of legs and flags cycles at another speed).
+    ``model_legs``: the wheel-leg geometry the method's model was made for
+    (the online layer refuses another number of legs); ``omega_range``:
+    ``(lo, hi)`` [rad/s], the leg speeds it covers (the online layer flags a
+    cycle at another speed ``"speed"`` and does not estimate it).
     """
 
     model_legs: int
-    model_omega: float
+    omega_range: tuple[float, float]
 
     @abstractmethod
     def update(self, features, slip_ref: float | None = None) -> CycleEstimate:
@@ -72,8 +77,9 @@ class CycleEstimator(ABC):
     def reset(self) -> None:
         """Forget everything learnt (back to the prior)."""
 
-    def prefetch(self) -> None:
-        """Warm what the next :meth:`update` reads (called shortly before a cycle closes); optional."""
+    def prefetch(self, omega: float | None = None, noise_smooth: float | None = None) -> None:
+        """Get ready for the next :meth:`update` (called shortly before a cycle closes, with the cycle's leg
+        speed [rad/s] and smoothed noise [g] so far when known); optional."""
 
 
 __all__ = ["CycleEstimate", "CycleEstimator"]

@@ -19,9 +19,8 @@ slip nodes; the measurement model is the feature surrogate
    break-away detected (``onset`` at the end of the window) carries no soil
    information and does not update the soil.
 
-Limits: the model's geometry and leg speed (``model_legs``,
-``model_omega``); slip 0-0.5 and the soil ranges of the model
-(``FeatureSurrogate.ranges``). One cycle step takes about 0.3-0.6 ms
+Limits: the model's geometry and covered leg speeds (``model_legs``,
+``omega_range``); slip 0-0.5 and the soil grid (:meth:`SoilGrid.default`). One cycle step takes about 0.3-0.6 ms
 (compiled; :meth:`SoilSlipEstimator.prefetch` warms its 6 MB table first).
 Why it is built this way, and what was tried: ``docs/estimator.md``.
 
@@ -38,6 +37,8 @@ import numpy as np
 from slipest.cycle_estimator import CycleEstimate, CycleEstimator
 from slipest.features import FEATURE_NAMES, INDEX
 from slipest.inverse.base import Soil
+from slipest.inverse.feature_inverse import FeatureInverse
+from slipest.inverse.grid import SLIP_NODES, SoilGrid, grid_tables, slip_prior
 from slipest.inverse.grid_kernels import (
     grid_loglik,
     marginal_from_rows,
@@ -47,7 +48,7 @@ from slipest.inverse.grid_kernels import (
     weighted_moments,
     whiten_into,
 )
-from slipest.inverse.surrogate import SLIP_NODES, FeatureSurrogate, SoilGrid, SurrogateInverse, load_inverse_model, slip_prior
+from slipest.inverse.surrogate import FeatureSurrogate, load_inverse_model
 
 #: Slip is marginalised on every NODE_STRIDE-th node of ``SLIP_NODES`` (0.02 apart), for the soil
 #: update and the slip estimate alike (docs/estimator.md: why this spacing suffices).
@@ -56,42 +57,48 @@ NODE_STRIDE = 2
 #: slip estimate (each holds less than exp(-15) = 3e-7 of the best one's mass).
 SLIP_CUTOFF = 15.0
 _ONSET = INDEX["onset"]
+_OMEGA = INDEX["omega"]
+_NOISE_SMOOTH = INDEX["noise_smooth"]
 
 #: Default probability per cycle that the soil changed [-].
 DEFAULT_HAZARD = 0.01
 #: Default tempering of a cycle's soil likelihood [-] (docs/estimator.md).
-DEFAULT_SOIL_TEMPER = 0.3
+DEFAULT_SOIL_TEMPER = 0.15
 #: Default forgetting of the soil posterior per update [-] (1: none; see module docstring).
 DEFAULT_FORGET = 0.9
 #: Default tempering of a cycle's slip likelihood [-] (widens the slip posterior for the surrogate's error).
 DEFAULT_SLIP_TEMPER = 0.4
+#: Squared whitened distance of a cycle's best candidate above which it is not explained by the model, when
+#: the model file does not say (the 99th percentile of a chi-square with 14 degrees of freedom).
+DEFAULT_FIT_LEVEL = 29.1
 
 
 @numba.njit(cache=True, fastmath=True)
-def _cycle_step(w, prior, hazard, soil_temper, forget, cutoff, node_width, table, fw, lp, nodes, node_quant,
-                ref_k, ref_a, skip, summary_x, summary_q, dmat, f32s, f64s, sel, ps, out):
+def _cycle_step(w, prior, hazard, soil_temper, forget, cutoff, node_width, scale, fit_level, table, fw, lp, nodes,
+                node_quant, ref_k, ref_a, skip, summary_x, summary_q, dmat, f32s, f64s, sel, ps, out):
     """One cycle of the grid filter, in place on the weights ``w`` (the soil posterior over the cells).
 
     predict (hazard mixing with the prior), cell likelihoods on the slip
     nodes ``nodes`` [-] (``table``: columnar ``(D, K, S)``; ``lp``: their
-    log prior; ``node_width``: their spacing [-]), slip marginal on the same
-    nodes over the cells that matter,
-    run-length-1 change probability, tempered update (by the reference
-    slip's likelihood when ``ref_k >= 0``: between nodes ``ref_k`` and
-    ``ref_k + 1`` at fraction ``ref_a``; the prior weights raised to
-    ``forget`` first), or no update when ``skip``; then the moments.
+    log prior; ``node_width``: their spacing [-]; ``scale``: the slip
+    tempering; ``fit_level``: the misfit level of :func:`grid_loglik`), slip
+    marginal on the same nodes over the cells that matter, run-length-1
+    change probability, tempered update (by the reference slip's likelihood
+    when ``ref_k >= 0``: between nodes ``ref_k`` and ``ref_k + 1`` at
+    fraction ``ref_a``; the prior weights raised to ``forget`` first), or no
+    update when ``skip``; then the moments.
 
     Writes ``out``: slip [-], its std [-] (``node_quant``: variance added
-    for the nodes' spacing), change probability [-], then mean and std of
-    each row of ``summary_x`` under the weights (std with ``summary_q``
-    added to the variance). Scratch: ``dmat`` ``(K, S)`` and ``f32s`` ``(3,
-    S)`` float32, ``f64s`` ``(2, S)`` float64, ``sel`` ``(S,)`` int64, ``ps``
-    ``(K,)`` float64.
+    for the nodes' spacing), change probability [-], misfit [-] (1: the
+    model explains the cycle), then mean and std of each row of
+    ``summary_x`` under the weights (std with ``summary_q`` added to the
+    variance). Scratch: ``dmat`` ``(K, S)`` and ``f32s`` ``(3, S)`` float32,
+    ``f64s`` ``(2, S)`` float64, ``sel`` ``(S,)`` int64, ``ps`` ``(K,)`` float64.
     """
     S = w.size
     lc = f64s[0]  # cell log-likelihoods
     lw = f64s[1]  # log weights after predict, then the update's log-likelihoods
-    grid_loglik(table, fw, lp, node_width, dmat, lc, f32s[:2])
+    _, misfit = grid_loglik(table, fw, lp, node_width, scale, fit_level, dmat, lc, f32s[:2])
     top = -np.inf
     for s in range(S):
         if lc[s] > top:
@@ -114,6 +121,7 @@ def _cycle_step(w, prior, hazard, soil_temper, forget, cutoff, node_width, table
     marginal_from_rows(dmat, sel, base, n, ps)
     out[0], out[1] = node_moments(ps, nodes, node_quant)
     out[2] = change
+    out[3] = misfit
     if not skip:
         ll = lw  # reused: the log weights are not needed any more
         if ref_k >= 0:
@@ -142,12 +150,12 @@ def _cycle_step(w, prior, hazard, soil_temper, forget, cutoff, node_width, table
             tot += w[s]
         for s in range(S):
             w[s] /= tot
-    weighted_moments(w, summary_x, summary_q, out[3:])
+    weighted_moments(w, summary_x, summary_q, out[4:])
 
 
 #: Fields of :class:`CycleEstimate` that :meth:`SoilSlipEstimator.update_batch` returns as arrays.
 BATCH_FIELDS = ("slip", "slip_std", "dphi", "dphi_std", "kS", "kS_std", "phiS", "phiS_std", "phiD", "phiD_std",
-                "change_prob", "used_reference")
+                "change_prob", "used_reference", "misfit")
 
 
 class SoilSlipEstimator(CycleEstimator):
@@ -164,8 +172,11 @@ class SoilSlipEstimator(CycleEstimator):
     forget: exponent applied to the soil posterior before each update (1: no forgetting) [-].
     grid: the soil grid (default :meth:`SoilGrid.default`).
     n_legs: legs of the wheel-leg (sets the end of the window, ``pi/nL``,
-    where ``onset`` lies when no break-away was detected).
-    n_dims: whitened feature directions kept (default: all; see :class:`~slipest.inverse.surrogate.SurrogateInverse`).
+        where ``onset`` lies when no break-away was detected).
+    fit_level: squared whitened distance of the best candidate above which a
+        cycle counts as not explained by the model and its likelihood is
+        widened by the excess (``misfit``; default: the model's, measured on
+        clean simulated cycles; inf: never).
     """
 
     def __init__(
@@ -179,7 +190,7 @@ class SoilSlipEstimator(CycleEstimator):
         slip_temper: float = DEFAULT_SLIP_TEMPER,
         grid: SoilGrid | None = None,
         n_legs: int = 4,
-        n_dims: int | None = None,
+        fit_level: float | None = None,
     ):
         if not 0.0 <= hazard < 1.0:
             raise ValueError(f"hazard={hazard} must be in [0, 1)")
@@ -187,8 +198,8 @@ class SoilSlipEstimator(CycleEstimator):
             raise ValueError("soil_temper, slip_temper and forget must be in (0, 1]")
         self.model = model or load_inverse_model()
         self.model_legs = self.model.n_legs
-        self.model_omega = self.model.omega
-        self.inverse = SurrogateInverse(self.model, grid, n_dims=n_dims)
+        self.omega_range = self.model.covered_range("omega")
+        self.inverse = FeatureInverse(self.model, grid)
         self.grid = self.inverse.grid
         self.soil = soil
         self.use_reference = bool(use_reference)
@@ -196,46 +207,39 @@ class SoilSlipEstimator(CycleEstimator):
         self.soil_temper = float(soil_temper)
         self.forget = float(forget)
         self.slip_temper = float(slip_temper)
+        level = self.model.meta.get("fit_level", DEFAULT_FIT_LEVEL) if fit_level is None else fit_level
+        self.fit_level = float(level)
         self._known = soil is not None and soil.complete
-        self._cols = self.model.columns
+        self._cols = np.ascontiguousarray(self.model.columns, dtype=np.int64)
         self._no_onset = math.pi / n_legs - 1e-9  # onset at or past this: no break-away detected
-        self._scale = math.sqrt(self.slip_temper)
         if not self._known:
-            table = self.inverse.table_t * np.float32(self._scale)  # (S, D, K)
-            S, D, K = table.shape
-            # the slip nodes (every NODE_STRIDE-th), as a columnar (D, K, S) table
-            picked = np.arange(0, K, NODE_STRIDE)
-            self._nodes = SLIP_NODES[picked]
+            self._nodes = SLIP_NODES[::NODE_STRIDE]
             self._node_width = float(self._nodes[1] - self._nodes[0])
-            self._table = np.ascontiguousarray(table[:, :, picked].transpose(1, 2, 0))  # (D, K, S)
+            self.tables = grid_tables(self.model, self.grid, self._nodes)
             self._lp = np.ascontiguousarray(slip_prior(self._nodes).astype(np.float32))
             self._node_quant = self._node_width ** 2 / 12.0  # variance of a uniform within one node
             cells = self.grid.cells()
             prior = np.exp(self.inverse.soil_logprior(soil))
             self._prior = prior / prior.sum()
+            S = cells.shape[0]
             q = self.grid.steps() ** 2 / 12.0  # variance of a uniform within one cell
             # dphi, kS, phiS, phiD of every cell, and the within-cell variance added to each
-            self._summary_x = np.ascontiguousarray(np.column_stack([cells[:, 1] - cells[:, 2], cells[:, 0], cells[:, 1], cells[:, 2]]).T)
-            self._summary_q = np.array([q[2], q[0], q[1] + q[2], q[1]])
+            self._summary_x = np.ascontiguousarray(np.column_stack([cells[:, 1] - cells[:, 2], cells[:, 0], cells[:, 1],
+                                                                    cells[:, 2]]).T)
+            self._summary_q = np.array([q[2], q[0], q[1], q[1] + q[2]])
             # scratch of the compiled step (no allocation per cycle)
             self._dmat = np.empty((self._nodes.size, S), dtype=np.float32)
             self._f32s = np.empty((3, S), dtype=np.float32)
             self._f64s = np.empty((2, S))
             self._sel = np.empty(S, dtype=np.int64)
             self._ps = np.empty(self._nodes.size)
-            self._out = np.empty(3 + 2 * self._summary_x.shape[0])
-            # the compiled whitening: modelled columns, log offsets, projection, scale; its output
-            self._whiten_args = (np.ascontiguousarray(self._cols, dtype=np.int64), np.asarray(self.model.log_offset, dtype=float),
-                                 np.ascontiguousarray(self.inverse.projection), np.float32(self._scale))
-            self._fw = np.zeros(D, dtype=np.float32)
-            whiten_into(np.zeros(len(FEATURE_NAMES)), *self._whiten_args, self._fw)
-            # what a cycle step reads or writes, flat (prefetch)
-            self._hot = [a.reshape(-1) for a in (self._table, self._dmat, self._f32s, self._f64s, self._prior,
-                                                  self._summary_x, self._sel)]
-            for a in self._hot:
-                touch(a)
-            # run the compiled kernels once now (loading them costs ~15 ms: not on the first cycle's latency)
-            self._step(self._prior.copy(), np.zeros(D, np.float32), 0.0, -1, 0.0, False)
+            self._out = np.empty(4 + 2 * self._summary_x.shape[0])
+            # build the table of the middle of the covered speeds and run the compiled kernels once now
+            # (not on the first cycle's latency)
+            table = self.tables.get(self.model.omega, 0.002)
+            self._fw = np.zeros(table.columnar.shape[0], dtype=np.float32)
+            self._table = table
+            self._step(self._prior.copy(), 0.0, -1, 0.0, False)
         self.reset()
 
     # ------------------------------------------------------------------
@@ -245,6 +249,7 @@ class SoilSlipEstimator(CycleEstimator):
         self.n_updates = 0
         self.n_reference = 0
         self.n_no_breakaway = 0
+        self.n_misfit = 0
         if not self._known:
             self._w = self._prior.copy()
 
@@ -253,25 +258,31 @@ class SoilSlipEstimator(CycleEstimator):
         """Posterior weights over the grid cells (``grid.cells()`` order); None with the soil known."""
         return None if self._known else self._w.copy()
 
-    def prefetch(self) -> None:
-        """Bring what the next cycle step reads (about 7 MB: the grid table, the weights, scratch) into the
-        CPU caches. Call it shortly before a cycle closes (:class:`~slipest.online.SlipEstimator` does, one
-        live sample at a time): the step then waits less on memory. Takes about 0.1-0.2 ms; changes nothing else."""
+    def prefetch(self, omega: float | None = None, noise_smooth: float | None = None) -> None:
+        """Get ready for the next cycle: build its table if its leg speed [rad/s] and smoothed noise [g] (when
+        known) fall in a new bin (about 0.1 s), then bring what the cycle step reads (the table, the weights,
+        scratch: about 14 MB) into the CPU caches. Call it shortly before a cycle closes
+        (:class:`~slipest.online.SlipEstimator` does): the step then waits less on memory. Changes nothing else."""
         if self._known:
             return
-        touch(self._w)
-        for a in self._hot:
-            touch(a)
+        if omega is not None and noise_smooth is not None and math.isfinite(omega) and omega > 0:
+            self._table = self.tables.get(omega, noise_smooth)
+        for a in (self._table.columnar, self._w, self._dmat, self._f32s, self._f64s, self._prior, self._summary_x,
+                  self._sel):
+            touch(a.reshape(-1))
 
-    def _step(self, w, fw, hazard: float, ref_k: int, ref_a: float, skip: bool) -> np.ndarray:
-        """Run the compiled cycle step on the weights ``w`` (in place); returns the ``out`` row of :func:`_cycle_step`."""
-        _cycle_step(w, self._prior, hazard, self.soil_temper, self.forget, SLIP_CUTOFF, self._node_width, self._table,
-                    fw, self._lp, self._nodes, self._node_quant, ref_k, ref_a, skip, self._summary_x,
-                    self._summary_q, self._dmat, self._f32s, self._f64s, self._sel, self._ps, self._out)
+    def _step(self, w, hazard: float, ref_k: int, ref_a: float, skip: bool) -> np.ndarray:
+        """Run the compiled cycle step on the weights ``w`` (in place) with the current table and ``self._fw``;
+        returns the ``out`` row of :func:`_cycle_step`."""
+        _cycle_step(w, self._prior, hazard, self.soil_temper, self.forget, SLIP_CUTOFF, self._node_width,
+                    self.slip_temper, self.fit_level, self._table.columnar, self._fw, self._lp, self._nodes,
+                    self._node_quant, ref_k, ref_a, skip, self._summary_x, self._summary_q, self._dmat, self._f32s,
+                    self._f64s, self._sel, self._ps, self._out)
         return self._out
 
     def update(self, features, slip_ref: float | None = None) -> CycleEstimate:
-        """One cycle: its full feature row (order of ``FEATURE_NAMES``) and, optionally, a reference slip [-].
+        """One cycle: its full feature row (order of ``FEATURE_NAMES``; its ``omega`` and ``noise_smooth``
+        say what the cycle was measured at) and, optionally, a reference slip [-].
 
         A row with non-finite modelled features raises ``ValueError``
         (the caller must not pass corrupted cycles; :mod:`slipest.online`
@@ -280,19 +291,21 @@ class SoilSlipEstimator(CycleEstimator):
         f = np.asarray(features, dtype=float)
         if f.shape != (len(FEATURE_NAMES),):
             raise ValueError(f"a feature row has {len(FEATURE_NAMES)} values, got shape {f.shape}")
+        omega, sig = float(f[_OMEGA]), float(f[_NOISE_SMOOTH])
+        if not (math.isfinite(omega) and omega > 0 and math.isfinite(sig) and sig >= 0):
+            raise ValueError("the feature row's omega and noise_smooth must be finite (omega > 0)")
         if self._known:
-            finite = np.all(np.isfinite(f[self._cols]))
+            finite = bool(np.all(np.isfinite(f[self._cols])))
         else:
-            finite = whiten_into(f, *self._whiten_args, self._fw)  # the table coordinates, into self._fw
+            self._table = self.tables.get(omega, sig)
+            finite = whiten_into(f, self._cols, self._table.whitener, self._fw)  # the table coordinates
         if not finite:
             raise ValueError("non-finite features: this cycle cannot be estimated")
         use_ref = self.use_reference and slip_ref is not None and math.isfinite(slip_ref)
         self.n_cycles += 1
         if self._known:
             s = self.soil
-            m, sd = self.inverse.slip_known_soil(f, s.kS, s.phiS, s.phiD)
-            if self._scale != 1.0:
-                sd = sd / self._scale
+            m, sd = self.inverse.slip_known_soil(f, s.kS, s.phiS, s.phiD, scale=self.slip_temper)
             return CycleEstimate(m, sd, s.dphi, 0.0, s.kS, 0.0, s.phiS, 0.0, s.phiD, 0.0, 0.0, False)
         if use_ref:
             nodes = self._nodes
@@ -302,8 +315,8 @@ class SoilSlipEstimator(CycleEstimator):
         else:
             ref_k, ref_a = -1, 0.0
         skip = bool(f[_ONSET] >= self._no_onset)  # no break-away: no soil update (module docstring)
-        slip, sd, change, dm, ds, km, ks, pm, pss, dm2, ds2 = self._step(self._w, self._fw, self.hazard, ref_k, ref_a,
-                                                                          skip).tolist()
+        slip, sd, change, misfit, dm, ds, km, ks, pm, pss, dm2, ds2 = self._step(self._w, self.hazard, ref_k, ref_a,
+                                                                                  skip).tolist()
         used = use_ref and not skip
         if skip:
             self.n_no_breakaway += 1
@@ -311,7 +324,9 @@ class SoilSlipEstimator(CycleEstimator):
             self.n_updates += 1
         if used:
             self.n_reference += 1
-        return CycleEstimate(slip, sd, dm, ds, km, ks, pm, pss, dm2, ds2, change, used)
+        if misfit > 1.0:
+            self.n_misfit += 1
+        return CycleEstimate(slip, sd, dm, ds, km, ks, pm, pss, dm2, ds2, change, used, misfit)
 
     def update_batch(self, features_2d, slip_ref=None) -> dict:
         """:meth:`update` over the rows of ``features_2d`` in order (the recursion is sequential).

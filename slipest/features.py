@@ -1,70 +1,70 @@
 """Per-leg-cycle features of the hub's vertical acceleration (pure computation).
 
 A leg cycle's *feature window* is the propulsive half-stance, leg phase
-``theta_phase`` from 0 (midstance) to ``pi/nL`` [rad] (what
-:class:`slipest.segmentation.LegCycle` hands over). Inside it the model's
-hub rides smoothly while the foot sticks, then, from the break-away,
-oscillates (stick-slip) with an amplitude that usually grows towards the
-end of the stance (``shared/spec/stickslip-model.md``, Fig. 5.5). What
-carries what (spec section 5 and the project's sweeps): the break-away
-angle mostly tracks slip (and ``kS``, ``phiS``), the oscillation frequency
-tracks ``kS``, the amplitude and its growth over the stance depend on all
-of slip, ``kS`` and ``dphi``.
+``theta_phase`` from 0 (midstance) to ``pi/nL`` [rad]. Inside it the hub
+rides on the stuck foot, then, from the break-away, oscillates (stick-slip).
+The break-away angle is quasi-static (it moves with slip, ``kS`` and
+``phiS``, not with the leg speed); the oscillation frequency is the hub's on
+the leg/soil spring (set by ``kS``, in Hz); the amplitude and its growth
+depend on slip, ``kS`` and ``dphi``.
+
+The features are built to mean the same thing whatever the IMU's rate
+(200 Hz - 2 kHz) and noise: the samples of the window are averaged into the
+:data:`N_GRID` bins of a uniform phase grid, then smoothed with a Gaussian
+kernel of fixed width in *time* (:data:`SMOOTH_TIME`, about a 20 Hz
+low-pass; the stick-slip oscillation is at 3-8 Hz), and every feature but
+``delta_a`` is taken on that smoothed signal, with thresholds and RMS values
+referred to the smoothed noise level ``noise_smooth`` (computed from the
+sample noise ``noise`` and how many samples each smoothed point averages).
 
 =============  =====  =========================================================
 name           unit   meaning
 =============  =====  =========================================================
-delta_a        g      ``Da``: max minus min of the raw ``az`` samples in the window
-peak_pos       g      max of ``az`` above the stick level (analysis grid)
-peak_neg       g      stick level minus min of ``az`` (analysis grid)
-rms            g      RMS of ``az`` about the window mean
+delta_a        g      ``Da`` as the thesis defines it: max minus min of the raw
+                      ``az`` samples in the window (grows with noise and rate)
+peak_pos       g      max of the smoothed ``az`` above the stick level
+peak_neg       g      stick level minus min of the smoothed ``az``
+rms            g      RMS of the smoothed ``az`` about the window mean, with the
+                      smoothed noise's variance taken out
 rms_q1..q4     g      the same per quarter of the window (about the window mean)
 onset          rad    break-away angle: first phase where the smoothed ``|az -
-                      stick level|`` exceeds the onset threshold; ``pi/nL`` when
-                      it never does (no stick-slip)
+                      stick level|`` exceeds the onset threshold
+                      (:func:`onset_threshold`); ``pi/nL`` when it never does
 energy_q10     rad    phases by which 10/50/90 % of the energy
-energy_q50     rad      ``sum (az - stick level)^2`` over the window has
-energy_q90     rad      accumulated
+energy_q50     rad      ``sum max((az - stick level)^2 - noise_smooth^2, 0)`` over
+energy_q90     rad      the window has accumulated
 zc_rate        Hz     crossings of the window mean (with hysteresis) per second
 osc_freq       Hz     ``(n - 1) / (2 dt)`` for the ``n`` hysteresis crossings
                       spanning ``dt`` seconds; 0 when ``n < 2``
-rice_freq      Hz     ``rms(d az/dt) / (2 pi rms(az))`` after the onset (smoothed
-                      signal, about its mean): a mean oscillation frequency; 0
-                      when there is no onset
+rice_freq      Hz     ``rms(d az/dt) / (2 pi rms(az))`` after the onset (about its
+                      mean there); 0 when there is no onset or no signal above
+                      3 ``noise_smooth``
 n_crossings    -      number of hysteresis crossings over the window
-noise          g      the sample noise's standard deviation, from the median
-                      absolute second difference of the raw samples
+noise          g      the sample noise's standard deviation (given, or estimated
+                      by :func:`sample_noise`)
 stick_mean     g      mean of ``az`` minus the stick level from the end of the
                       stick-level span to :data:`STICK_SPAN` rad, or to 0.01 rad
                       before the onset if that comes first (0 when that leaves
-                      fewer than 4 bins): the hub's motion on the stuck foot,
-                      which depends on slip and ``kS`` but not on friction
+                      fewer than 4 bins): the hub's motion on the stuck foot
+omega          rad/s  mean leg speed over the window
+noise_smooth   g      standard deviation of the noise left on the smoothed signal
 =============  =====  =========================================================
 
-Gravity and bias removal, made explicit: the IMU reports the specific force
-(``+g`` at rest) plus an unknown constant bias. No feature depends on either:
-``delta_a`` and ``noise`` are differences; ``peak_pos``, ``peak_neg``,
-``onset`` and the energy phases are taken relative to the **stick level**,
-the mean of ``az`` over the first :data:`STICK_FRACTION` of the window
-(before the earliest break-away of the spec's ranges: the hub then rides
-smoothly on the stuck foot); the RMS features, the crossings and the
-frequencies are taken about the **window mean** (``rice_freq``: about the
-mean after the onset). Adding a constant to ``az`` changes no feature
-(tested).
+Gravity and bias: the IMU reports the specific force (``+g`` at rest) plus
+an unknown constant bias; no feature depends on either (``delta_a`` and the
+RMS values are differences or spreads; peaks, onset, energies and
+``stick_mean`` are relative to the **stick level**, the mean of the smoothed
+signal over the first :data:`STICK_FRACTION` of the window; crossings and
+frequencies are about the window mean). Adding a constant to ``az`` changes
+no feature (tested).
 
-Uneven sampling: the raw samples are averaged into the :data:`N_GRID` bins
-of a uniform *analysis grid* over ``[0, pi/nL]`` (empty bins are filled by
-linear interpolation between their neighbours), and every feature except
-``delta_a`` and ``noise`` is computed there. Samples outside the window are
-ignored. Averaging (not point interpolation) keeps the features of a cycle
-sampled at 1 kHz and of the same cycle sampled unevenly close together.
+Noise: :func:`sample_noise` estimates it from the median absolute second
+difference of the samples of the rigid half of the cycle (phase in
+``[-0.8 pi/nL, -0.05 pi/nL]``, where the hub rides smoothly on the planted
+foot), or, when the cycle does not carry that half, of the first
+:data:`STICK_SPAN` rad of the window.
 
-Frequencies are in Hz and need the leg speed: :func:`cycle_features` takes
-it from the samples' ``t`` and ``theta_phase``; :func:`features_batch` is
-given ``omega`` [rad/s] (default: the model's 0.63 rad/s).
-
-Both entry points run the same compiled routine (numba), about 30 us a
-cycle at 1 kHz.
+One compiled routine (numba) computes a row, about 30-60 us a cycle.
 """
 
 from __future__ import annotations
@@ -96,42 +96,63 @@ FEATURE_NAMES = (
     "n_crossings",
     "noise",
     "stick_mean",
+    "omega",
+    "noise_smooth",
 )
 
 #: Unit of each feature, same order as :data:`FEATURE_NAMES`.
-FEATURE_UNITS = ("g",) * 8 + ("rad",) * 4 + ("Hz",) * 3 + ("-", "g", "g")
+FEATURE_UNITS = ("g",) * 8 + ("rad",) * 4 + ("Hz",) * 3 + ("-", "g", "g", "rad/s", "g")
 
 #: Column index of each feature.
 INDEX = {name: j for j, name in enumerate(FEATURE_NAMES)}
 
-#: Number of bins of the uniform analysis grid over the window [-].
+#: Number of bins of the uniform phase grid over the window [-].
 N_GRID = 512
+#: Standard deviation of the Gaussian smoothing kernel, in time [s] (about a 20 Hz low-pass).
+SMOOTH_TIME = 0.006
 #: Fraction of the window, from its start, whose mean is the stick level [-].
 STICK_FRACTION = 0.025
-#: Length of the moving average applied before the onset test and ``rice_freq`` [grid bins].
-SMOOTH_BINS = 4
-#: Onset threshold: at least this much [g] ...
+#: Onset threshold ``sqrt(ONSET_FLOOR_G^2 + (ONSET_SPEED_G omega^2)^2) + ONSET_SIGMAS noise_smooth`` [g]: a floor
+#: [g], the hub's own bounce on the stuck foot, which grows as omega^2 (its 99th percentile over the envelope
+#: is 0.039 omega^2 g) [g s^2/rad^2], and a margin over the smoothed noise [-].
 ONSET_FLOOR_G = 0.03
-#: ... and at least this many standard deviations of the smoothed noise [-].
-ONSET_SIGMAS = 5.0
+ONSET_SPEED_G = 0.05
+ONSET_SIGMAS = 4.5
 #: Hysteresis half-band of the crossings: this fraction of the window's RMS ...
 HYSTERESIS_FRACTION = 0.3
-#: ... but at least this much [g].
+#: ... but at least this much [g] ...
 HYSTERESIS_FLOOR_G = 0.03
-#: End of the span of ``stick_mean`` [rad] (before the break-away for most of the spec's ranges).
+#: ... and at least this many smoothed-noise standard deviations [-].
+HYSTERESIS_SIGMAS = 4.0
+#: End of the span of ``stick_mean``, and of the window part that estimates the noise when the cycle
+#: carries no rigid half [rad].
 STICK_SPAN = 0.1
-#: Fewest samples a window may have [-].
+#: Rigid-half phases (fractions of ``pi/nL``) whose samples estimate the noise.
+NOISE_SPAN = (-0.8, -0.05)
+#: Fewest samples a window may have, and fewest samples a noise estimate uses [-].
 MIN_SAMPLES = 16
 #: Default leg speed [rad/s] for :func:`features_batch` (the model's omega).
 DEFAULT_OMEGA = 0.63
 
 _N_FEATURES = len(FEATURE_NAMES)
+_DELTA_A, _PEAK_POS, _PEAK_NEG, _RMS = INDEX["delta_a"], INDEX["peak_pos"], INDEX["peak_neg"], INDEX["rms"]
+_RMS_Q1, _ONSET, _ENERGY_Q10 = INDEX["rms_q1"], INDEX["onset"], INDEX["energy_q10"]
+_ZC_RATE, _OSC_FREQ, _RICE_FREQ = INDEX["zc_rate"], INDEX["osc_freq"], INDEX["rice_freq"]
+_N_CROSSINGS, _NOISE, _STICK_MEAN = INDEX["n_crossings"], INDEX["noise"], INDEX["stick_mean"]
+_OMEGA, _NOISE_SMOOTH = INDEX["omega"], INDEX["noise_smooth"]
+_ENERGY_TARGETS = (0.1, 0.5, 0.9)
 
 
 def analysis_grid(n_legs: int = 4, n: int = N_GRID) -> np.ndarray:
-    """Centres [rad] of the ``n`` bins of the uniform analysis grid over ``[0, pi/n_legs]``."""
+    """Centres [rad] of the ``n`` bins of the uniform phase grid over ``[0, pi/n_legs]``."""
     half = math.pi / n_legs
     return (np.arange(n) + 0.5) * (half / n)
+
+
+@numba.njit(cache=True)
+def onset_threshold(omega, noise_smooth):
+    """The onset threshold [g] at leg speed ``omega`` [rad/s] and smoothed noise ``noise_smooth`` [g]."""
+    return math.sqrt(ONSET_FLOOR_G**2 + (ONSET_SPEED_G * omega * omega) ** 2) + ONSET_SIGMAS * noise_smooth
 
 
 @numba.njit(cache=True)
@@ -157,44 +178,55 @@ def bin_mean_fill(acc, cnt):
         acc[g] = acc[last] if last >= 0 else 0.0
 
 
-# Column of each feature in a row, as compile-time constants of the kernels below.
-_DELTA_A, _PEAK_POS, _PEAK_NEG, _RMS = INDEX["delta_a"], INDEX["peak_pos"], INDEX["peak_neg"], INDEX["rms"]
-_RMS_Q1, _ONSET, _ENERGY_Q10 = INDEX["rms_q1"], INDEX["onset"], INDEX["energy_q10"]
-_ZC_RATE, _OSC_FREQ, _RICE_FREQ = INDEX["zc_rate"], INDEX["osc_freq"], INDEX["rice_freq"]
-_N_CROSSINGS, _NOISE, _STICK_MEAN = INDEX["n_crossings"], INDEX["noise"], INDEX["stick_mean"]
-_ENERGY_TARGETS = (0.1, 0.5, 0.9)
+@numba.njit(cache=True)
+def _second_difference_noise(phase, a, lo, hi, min_samples):
+    """1.4826 median|a[i+1] - 2 a[i] + a[i-1]| / sqrt(6) over samples with phase in [lo, hi]; NaN if too few."""
+    d2 = np.empty(max(phase.size, 1))
+    m = 0
+    for i in range(1, phase.size - 1):
+        if lo <= phase[i - 1] and phase[i + 1] <= hi:
+            d2[m] = abs(a[i + 1] - 2.0 * a[i] + a[i - 1])
+            m += 1
+    if m < min_samples:
+        return np.nan
+    return 1.4826 * np.median(d2[:m]) / math.sqrt(6.0)
+
+
+@numba.njit(cache=True)
+def _sample_noise(phase, a, half):
+    """Noise [units of ``a``] from the rigid half when the cycle carries it, else from the window's start."""
+    s = _second_difference_noise(phase, a, NOISE_SPAN[0] * half, NOISE_SPAN[1] * half, MIN_SAMPLES)
+    if s == s:
+        return s
+    s = _second_difference_noise(phase, a, 0.0, STICK_SPAN, MIN_SAMPLES // 2)
+    if s == s:
+        return s
+    return _second_difference_noise(phase, a, 0.0, half, 3)
 
 
 @numba.njit(cache=True, inline="always")
-def _raw_features(phase, a, half, out):
-    """``delta_a`` and ``noise`` [g] from the raw samples inside the window; returns (noise, samples inside)."""
-    n_raw = phase.size
+def _raw_delta_a(phase, a, half):
+    """Max minus min of the raw samples inside the window [units of ``a``], and how many there are."""
     amax = -np.inf
     amin = np.inf
     n_in = 0
-    for i in range(n_raw):
+    for i in range(phase.size):
         if 0.0 <= phase[i] <= half:
             n_in += 1
             if a[i] > amax:
                 amax = a[i]
             if a[i] < amin:
                 amin = a[i]
-    out[_DELTA_A] = amax - amin
-    d2 = np.empty(max(n_raw - 2, 1))
-    m = 0
-    for i in range(1, n_raw - 1):
-        if 0.0 <= phase[i] <= half:
-            d2[m] = abs(a[i + 1] - 2.0 * a[i] + a[i - 1])
-            m += 1
-    noise = 1.4826 * np.median(d2[:m]) / math.sqrt(6.0) if m > 0 else 0.0
-    out[_NOISE] = noise
-    return noise, n_in
+    return amax - amin, n_in
 
 
 @numba.njit(cache=True, inline="always")
-def _analysis_grid_means(phase, a, half, n_grid):
-    """The samples inside the window averaged into the ``n_grid`` bins of the analysis grid (gaps filled)."""
-    y = np.zeros(n_grid)
+def _smoothed_grid(phase, a, half, omega, n_grid, y):
+    """The window's samples binned on the phase grid, then smoothed by a Gaussian of SMOOTH_TIME s (weighted by
+    the bins' sample counts); writes ``y`` and returns the mean over the grid of the sum of squared normalised
+    weights of the samples behind each point (the smoothed noise variance per unit sample variance)."""
+    dphase = half / n_grid
+    acc = np.zeros(n_grid)
     cnt = np.zeros(n_grid)
     scale = n_grid / half
     for i in range(phase.size):
@@ -202,48 +234,41 @@ def _analysis_grid_means(phase, a, half, n_grid):
             b = int(phase[i] * scale)
             if b >= n_grid:
                 b = n_grid - 1
-            y[b] += a[i]
+            acc[b] += a[i]
             cnt[b] += 1.0
-    bin_mean_fill(y, cnt)
-    return y
+    s_bins = SMOOTH_TIME * omega / dphase
+    reach = max(1, int(math.ceil(3.0 * s_bins)))
+    kern = np.empty(2 * reach + 1)
+    for h in range(-reach, reach + 1):
+        kern[h + reach] = math.exp(-0.5 * (h / s_bins) ** 2)
+    w2sum = 0.0
+    n_ok = 0
+    filled = np.zeros(n_grid)
+    for g in range(n_grid):
+        sw = 0.0
+        swy = 0.0
+        sw2 = 0.0
+        for h in range(max(0, g - reach), min(n_grid, g + reach + 1)):
+            c = cnt[h]
+            if c > 0.0:
+                k = kern[h - g + reach]
+                sw += k * c
+                swy += k * acc[h]
+                sw2 += k * k * c
+        if sw > 0.0:
+            y[g] = swy / sw
+            w2sum += sw2 / (sw * sw)
+            n_ok += 1
+            filled[g] = 1.0
+        else:
+            y[g] = 0.0
+    if n_ok < n_grid:  # points no sample reaches: interpolated between their neighbours
+        bin_mean_fill(y, filled)
+    return w2sum / max(n_ok, 1)
 
 
 @numba.njit(cache=True, inline="always")
-def _moving_average(y):
-    """Centred moving average over ``SMOOTH_BINS`` bins, shrinking at the edges."""
-    n_grid = y.size
-    ys = np.empty(n_grid)
-    h0 = SMOOTH_BINS // 2
-    for b in range(n_grid):
-        lo = max(0, b - h0)
-        hi = min(n_grid, b - h0 + SMOOTH_BINS)
-        s = 0.0
-        for g in range(lo, hi):
-            s += y[g]
-        ys[b] = s / (hi - lo)
-    return ys
-
-
-@numba.njit(cache=True, inline="always")
-def _onset_bin(ys, stick, thr, dphase, half):
-    """First bin where the smoothed signal leaves the stick level by more than ``thr``, and the onset phase
-    [rad] interpolated to the crossing (``(n_grid, half)`` when it never does)."""
-    n_grid = ys.size
-    prev = 0.0
-    for b in range(n_grid):
-        v = abs(ys[b] - stick)
-        if v > thr:
-            c = (b + 0.5) * dphase
-            if b > 0 and v > prev:
-                frac = (thr - prev) / (v - prev)
-                c = (b - 0.5 + min(max(frac, 0.0), 1.0)) * dphase
-            return b, c
-        prev = v
-    return n_grid, half
-
-
-@numba.njit(cache=True, inline="always")
-def _stick_relative_features(y, ys, noise, n_in, half, out):
+def _stick_relative_features(y, sig_s, omega, half, out):
     """Peaks, onset, ``stick_mean`` and energy quantiles relative to the stick level; returns the onset bin."""
     n_grid = y.size
     dphase = half / n_grid
@@ -262,9 +287,14 @@ def _stick_relative_features(y, ys, noise, n_in, half, out):
             pmin = d
     out[_PEAK_POS] = pmax
     out[_PEAK_NEG] = -pmin
-    per_point = max(n_in / n_grid, 1.0) * SMOOTH_BINS
-    thr = max(ONSET_FLOOR_G, ONSET_SIGMAS * noise / math.sqrt(per_point))
-    k_on, onset = _onset_bin(ys, stick, thr, dphase, half)
+    thr = onset_threshold(omega, sig_s)
+    k_on = n_grid
+    onset = half
+    for b in range(n_grid):
+        if abs(y[b] - stick) > thr:
+            k_on = b
+            onset = (b + 0.5) * dphase
+            break
     out[_ONSET] = onset
     k_end = min(int(STICK_SPAN / dphase), int((onset - 0.01) / dphase))
     if k_end - n_stick >= 4:
@@ -274,28 +304,29 @@ def _stick_relative_features(y, ys, noise, n_in, half, out):
         out[_STICK_MEAN] = acc / (k_end - n_stick)
     else:
         out[_STICK_MEAN] = 0.0
+    var_s = sig_s * sig_s
     etot = 0.0
     for b in range(n_grid):
-        etot += (y[b] - stick) ** 2
+        etot += max((y[b] - stick) ** 2 - var_s, 0.0)
     for q in range(3):
-        if etot <= 0.0:
-            out[_ENERGY_Q10 + q] = _ENERGY_TARGETS[q] * half
-            continue
-        acc = 0.0
-        res = half
-        for b in range(n_grid):
-            acc += (y[b] - stick) ** 2
-            if acc >= _ENERGY_TARGETS[q] * etot:
-                res = (b + 0.5) * dphase
-                break
+        res = _ENERGY_TARGETS[q] * half
+        if etot > 0.0:
+            acc = 0.0
+            for b in range(n_grid):
+                acc += max((y[b] - stick) ** 2 - var_s, 0.0)
+                if acc >= _ENERGY_TARGETS[q] * etot:
+                    res = (b + 0.5) * dphase
+                    break
         out[_ENERGY_Q10 + q] = res
     return k_on
 
 
 @numba.njit(cache=True, inline="always")
-def _mean_relative_features(y, duration, dphase, omega, out):
-    """RMS (whole window and quarters) about the window mean, and the hysteresis crossings and frequencies."""
+def _mean_relative_features(y, sig_s, half, omega, out):
+    """RMS (window and quarters, noise variance taken out) about the window mean, hysteresis crossings."""
     n_grid = y.size
+    dphase = half / n_grid
+    var_s = sig_s * sig_s
     mean = 0.0
     for b in range(n_grid):
         mean += y[b]
@@ -308,10 +339,10 @@ def _mean_relative_features(y, duration, dphase, omega, out):
         for b in range(lo, hi):
             sq += (y[b] - mean) ** 2
         sq_all += sq
-        out[_RMS_Q1 + qi] = math.sqrt(sq / (hi - lo))
-    rms = math.sqrt(sq_all / n_grid)
+        out[_RMS_Q1 + qi] = math.sqrt(max(sq / (hi - lo) - var_s, 0.0))
+    rms = math.sqrt(max(sq_all / n_grid - var_s, 0.0))
     out[_RMS] = rms
-    hband = max(HYSTERESIS_FRACTION * rms, HYSTERESIS_FLOOR_G)
+    hband = max(HYSTERESIS_FRACTION * rms, HYSTERESIS_FLOOR_G, HYSTERESIS_SIGMAS * sig_s)
     state = 0
     n_cross = 0
     first = -1
@@ -327,46 +358,56 @@ def _mean_relative_features(y, duration, dphase, omega, out):
                 lastc = b
             state = s
     out[_N_CROSSINGS] = n_cross
-    out[_ZC_RATE] = n_cross / duration
+    out[_ZC_RATE] = n_cross / (half / omega)
     span = (lastc - first) * dphase / omega
     out[_OSC_FREQ] = (n_cross - 1) / (2.0 * span) if (n_cross >= 2 and span > 0) else 0.0
 
 
 @numba.njit(cache=True, inline="always")
-def _rice_frequency(ys, k_on, dt):
-    """``rms(d ys/dt) / (2 pi rms(ys))`` after the onset bin ``k_on`` (about the mean there) [Hz]; 0 without one."""
-    n_grid = ys.size
+def _rice_frequency(y, k_on, dt, sig_s):
+    """``rms(d y/dt) / (2 pi rms(y))`` after the onset bin ``k_on`` (about the mean there) [Hz]; 0 without one,
+    or when the signal there is within 3 smoothed-noise standard deviations."""
+    n_grid = y.size
     if k_on >= n_grid - 2:
         return 0.0
     m2 = 0.0
     for b in range(k_on, n_grid):
-        m2 += ys[b]
+        m2 += y[b]
     m2 /= n_grid - k_on
     v0 = 0.0
     v1 = 0.0
     for b in range(k_on, n_grid - 1):
-        v0 += (ys[b] - m2) ** 2
-        v1 += ((ys[b + 1] - ys[b]) / dt) ** 2
+        v0 += (y[b] - m2) ** 2
+        v1 += ((y[b + 1] - y[b]) / dt) ** 2
     v0 /= n_grid - k_on - 1
     v1 /= n_grid - k_on - 1
-    return math.sqrt(v1 / v0) / (2.0 * math.pi) if v0 > 0 else 0.0
+    if not (v0 > 9.0 * sig_s * sig_s and v0 > 0.0):
+        return 0.0
+    return math.sqrt(v1 / v0) / (2.0 * math.pi)
 
 
 @numba.njit(cache=True)
-def _row_features(phase, a, half, omega, n_grid, out):
-    """Features of one cycle (the table of the module docstring). phase [rad] sorted; a [g]; out: one row."""
-    noise, n_in = _raw_features(phase, a, half, out)
-    y = _analysis_grid_means(phase, a, half, n_grid)
-    ys = _moving_average(y)
-    k_on = _stick_relative_features(y, ys, noise, n_in, half, out)
-    dphase = half / n_grid
-    _mean_relative_features(y, half / omega, dphase, omega, out)
-    out[_RICE_FREQ] = _rice_frequency(ys, k_on, dphase / omega)
+def _row_features(phase, a, half, omega, noise, n_grid, out):
+    """Features of one cycle (the table of the module docstring). phase [rad] sorted; a [g]; noise [g]
+    (NaN: estimated); out: one row."""
+    out[_DELTA_A], n_in = _raw_delta_a(phase, a, half)
+    if not noise == noise:
+        noise = _sample_noise(phase, a, half)
+    y = np.empty(n_grid)
+    w2 = _smoothed_grid(phase, a, half, omega, n_grid, y)
+    sig_s = noise * math.sqrt(w2)
+    k_on = _stick_relative_features(y, sig_s, omega, half, out)
+    _mean_relative_features(y, sig_s, half, omega, out)
+    out[_RICE_FREQ] = _rice_frequency(y, k_on, half / n_grid / omega, sig_s)
+    out[_NOISE] = noise
+    out[_OMEGA] = omega
+    out[_NOISE_SMOOTH] = sig_s
 
 
 @numba.njit(cache=True)
-def _batch_kernel(phase, a2, scale, half, omega, n_grid, out):
-    """Features of every row of ``a2`` (``a2 * scale`` in g); NaN rows where ``a2`` is not finite."""
+def _batch_kernel(phase, a2, scale, half, omega, noise, n_grid, out):
+    """Features of every row of ``a2`` (``a2 * scale`` in g; ``noise[r]`` [g], NaN: estimated); NaN rows where
+    ``a2`` is not finite."""
     row = np.empty(phase.size)
     for r in range(a2.shape[0]):
         finite = True
@@ -377,7 +418,7 @@ def _batch_kernel(phase, a2, scale, half, omega, n_grid, out):
                 break
             row[i] = v * scale
         if finite:
-            _row_features(phase, row, half, omega, n_grid, out[r])
+            _row_features(phase, row, half, omega, noise[r], n_grid, out[r])
         else:
             out[r, :] = np.nan
 
@@ -407,26 +448,34 @@ def _phase_status(phase, half, min_samples):
 
 
 @numba.njit(cache=True)
-def _cycle_kernel(phase, az, t, omega, half, min_samples, n_grid, scale, out):
+def _cycle_kernel(phase, az, t, omega, noise, half, min_samples, n_grid, scale, out):
     """:func:`cycle_features`'s checks and features in one call: ``out`` one row (``az * scale`` in g).
 
-    ``omega`` [rad/s]: NaN takes it from ``t`` [s] and ``phase`` [rad].
+    ``omega`` [rad/s]: NaN takes it from ``t`` [s] and ``phase`` [rad] over the window.
     Returns ``(code, first, last, omega)``: 0 done; 1-4 as
     :func:`_phase_status`; 5 ``t`` does not increase; 6 the phase does not
-    advance; 7 ``omega`` not finite and positive; 8 ``az`` not finite.
+    advance; 7 ``omega`` not finite and positive; 8 ``az`` not finite;
+    9 the noise cannot be estimated.
     """
     first = np.nan
     last = np.nan
-    if math.isnan(omega):
-        span = t[t.size - 1] - t[0] if t.size else 0.0
-        if not (np.isfinite(span) and span > 0):
-            return 5, first, last, omega
-        omega = (phase[phase.size - 1] - phase[0]) / span
-        if not omega > 0:
-            return 6, first, last, omega
     code, first, last = _phase_status(phase, half, min_samples)
     if code != 0:
         return code, first, last, omega
+    if math.isnan(omega):
+        i0 = -1
+        i1 = -1
+        for i in range(phase.size):
+            if 0.0 <= phase[i] <= half:
+                if i0 < 0:
+                    i0 = i
+                i1 = i
+        span = t[i1] - t[i0]
+        if not (np.isfinite(span) and span > 0):
+            return 5, first, last, omega
+        omega = (phase[i1] - phase[i0]) / span
+        if not omega > 0:
+            return 6, first, last, omega
     if not (np.isfinite(omega) and omega > 0):
         return 7, first, last, omega
     row = np.empty(phase.size)
@@ -435,16 +484,12 @@ def _cycle_kernel(phase, az, t, omega, half, min_samples, n_grid, scale, out):
         if not np.isfinite(v):
             return 8, first, last, omega
         row[i] = v * scale
-    _row_features(phase, row, half, omega, n_grid, out)
+    if not noise == noise:
+        noise = _sample_noise(phase, row, half)
+        if not noise == noise:
+            return 9, first, last, omega
+    _row_features(phase, row, half, omega, noise, n_grid, out)
     return 0, first, last, omega
-
-
-def _check_phase(phase: np.ndarray, n_legs: int) -> None:
-    if phase.ndim != 1:
-        raise ValueError(f"phase must be 1-D, got shape {phase.shape}")
-    half = math.pi / n_legs
-    code, first, last = _phase_status(phase, half, MIN_SAMPLES)
-    _raise_phase(code, first, last, n_legs)
 
 
 def _raise_phase(code: int, first: float, last: float, n_legs: int) -> None:
@@ -463,16 +508,26 @@ def _raise_phase(code: int, first: float, last: float, n_legs: int) -> None:
         )
 
 
-def features_batch(phase, az_2d, n_legs: int = 4, omega: float = DEFAULT_OMEGA) -> np.ndarray:
+def sample_noise(theta_phase, az, n_legs: int = 4) -> float:
+    """The IMU noise's standard deviation [g] of one cycle's samples (see the module docstring); NaN when
+    too few samples lie where it is measured. ``theta_phase`` [rad] sorted; ``az`` [m/s^2]."""
+    phase = np.ascontiguousarray(theta_phase, dtype=np.float64)
+    a = np.ascontiguousarray(az, dtype=np.float64) / G
+    return float(_sample_noise(phase, a, math.pi / n_legs))
+
+
+def features_batch(phase, az_2d, n_legs: int = 4, omega: float = DEFAULT_OMEGA, noise=None) -> np.ndarray:
     """Features of many leg cycles sampled on one phase grid.
 
     phase: ``(n,)`` leg phase of the samples [rad] relative to midstance,
         non-decreasing, covering the window ``[0, pi/n_legs]`` (samples
-        outside it are ignored); may be uneven.
+        outside it are used only to estimate the noise); may be uneven.
     az_2d: ``(B, n)`` vertical specific force [m/s^2] (gravity and any
         constant bias included or not), one row per cycle; or ``(n,)``.
     n_legs: number of legs ``nL`` [-] (the window is ``[0, pi/nL]``).
-    omega: mean leg angular speed [rad/s], to express frequencies in Hz.
+    omega: leg angular speed [rad/s] (the samples are taken as evenly paced in time).
+    noise: the IMU noise's standard deviation [g], a scalar or one per row
+        (None or NaN: estimated from each row, :func:`sample_noise`).
 
     Returns ``(B, len(FEATURE_NAMES))`` in the units of
     :data:`FEATURE_UNITS`. A row with any non-finite ``az`` gives a row of
@@ -483,30 +538,39 @@ def features_batch(phase, az_2d, n_legs: int = 4, omega: float = DEFAULT_OMEGA) 
     az_2d = np.asarray(az_2d, dtype=np.float64)
     if az_2d.ndim == 1:
         az_2d = az_2d[None, :]
-    _check_phase(phase, n_legs)
+    if phase.ndim != 1:
+        raise ValueError(f"phase must be 1-D, got shape {phase.shape}")
+    code, first, last = _phase_status(phase, math.pi / n_legs, MIN_SAMPLES)
+    _raise_phase(code, first, last, n_legs)
     if az_2d.ndim != 2 or az_2d.shape[1] != phase.size:
         raise ValueError(f"az_2d must have shape (B, {phase.size}), got {az_2d.shape}")
     if not (math.isfinite(omega) and omega > 0):
         raise ValueError(f"omega={omega} rad/s must be positive")
+    noise = np.broadcast_to(np.asarray(np.nan if noise is None else noise, dtype=np.float64), (az_2d.shape[0],))
     out = np.empty((az_2d.shape[0], _N_FEATURES))
-    _batch_kernel(phase, az_2d, 1.0 / G, math.pi / n_legs, float(omega), N_GRID, out)
+    _batch_kernel(phase, az_2d, 1.0 / G, math.pi / n_legs, float(omega), np.ascontiguousarray(noise), N_GRID, out)
     return out
 
 
-def cycle_features(theta_phase, az, t=None, n_legs: int = 4, omega: float | None = None) -> np.ndarray:
-    """Features of one leg cycle's window: one row in the order of :data:`FEATURE_NAMES`.
+def cycle_features(theta_phase, az, t=None, n_legs: int = 4, omega: float | None = None,
+                   noise: float | None = None) -> np.ndarray:
+    """Features of one leg cycle: one row in the order of :data:`FEATURE_NAMES`.
 
     theta_phase: leg phase of the samples relative to midstance [rad]
-        (the window is ``[0, pi/n_legs]``); sorted, may be uneven.
+        (the window is ``[0, pi/n_legs]``; samples of the rigid half before
+        it, phase ``>= -pi/n_legs``, are used to estimate the noise); sorted,
+        may be uneven.
     az: vertical specific force [m/s^2] (gravity and a constant bias allowed).
-    t: sample times [s]; gives the leg speed for the frequencies
-        (``omega`` [rad/s] may be given instead; default 0.63 rad/s).
+    t: sample times [s]; give the leg speed (``omega`` [rad/s] may be
+        given instead; default 0.63 rad/s).
     n_legs: number of legs [-].
+    noise: the IMU noise's standard deviation [g] (None: estimated from the
+        samples, :func:`sample_noise`).
 
     Raises ``ValueError`` for unusable input (mismatched lengths, fewer
     than :data:`MIN_SAMPLES` samples in the window, unsorted or non-finite
     phase, the window's start or end missing, non-finite ``az``, time not
-    increasing).
+    increasing, a noise that cannot be estimated).
     """
     theta_phase = np.ascontiguousarray(theta_phase, dtype=np.float64)
     az = np.asarray(az, dtype=np.float64)
@@ -522,10 +586,11 @@ def cycle_features(theta_phase, az, t=None, n_legs: int = 4, omega: float | None
         t = theta_phase  # not read
     if theta_phase.ndim != 1:
         raise ValueError(f"phase must be 1-D, got shape {theta_phase.shape}")
-    # one compiled call (checks and features): the same as features_batch on one row, without its overhead
-    # on a cycle's closing sample
+    nz = math.nan if noise is None else float(noise)
+    # one compiled call (checks and features): no numpy overhead on a cycle's closing sample
     row = np.empty(_N_FEATURES)
-    code, first, last, om = _cycle_kernel(theta_phase, az, t, om, math.pi / n_legs, MIN_SAMPLES, N_GRID, 1.0 / G, row)
+    code, first, last, om = _cycle_kernel(theta_phase, az, t, om, nz, math.pi / n_legs, MIN_SAMPLES, N_GRID,
+                                          1.0 / G, row)
     if code == 5:
         raise ValueError("t must increase over the window")
     if code == 6:
@@ -535,6 +600,8 @@ def cycle_features(theta_phase, az, t=None, n_legs: int = 4, omega: float | None
         raise ValueError(f"omega={om} rad/s must be positive")
     if code == 8:
         raise ValueError("az has non-finite values")
+    if code == 9:
+        raise ValueError("the noise cannot be estimated: too few samples")
     return row
 
 
@@ -546,4 +613,6 @@ __all__ = [
     "analysis_grid",
     "cycle_features",
     "features_batch",
+    "onset_threshold",
+    "sample_noise",
 ]

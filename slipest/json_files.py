@@ -1,9 +1,9 @@
 """Reading the project's JSON documents: shipped package data or a file the user names.
 
 One place for the errors a user sees when such a file is missing,
-unreadable or not JSON (the calibration of :mod:`slipest.calibration`, the
-inverse model of :mod:`slipest.inverse.surrogate`); each caller validates
-the document's contents itself and raises its own error class.
+unreadable or not JSON (the calibration of :mod:`slipest.calibration`);
+each caller validates the document's contents itself and raises its own
+error class.
 """
 
 from __future__ import annotations

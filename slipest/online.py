@@ -19,6 +19,10 @@ that cannot be estimated (segmenter flag such as ``"gap"``, ``"nan"``,
 or a leg speed outside the models' (``"speed"``)
 still gives an Estimate, with NaN values and ``quality`` naming the reason:
 nothing is dropped silently, and nothing is estimated from corrupted data.
+A cycle with a few samples missing or unusable in short holes (see
+:class:`~slipest.segmentation.CycleSegmenter`) or with isolated outliers
+(:mod:`slipest.despike`) is estimated without them, with quality
+``"repaired"`` and their count in ``n_repaired``.
 
 Methods (each a :class:`~slipest.cycle_estimator.CycleEstimator`):
 
@@ -53,19 +57,62 @@ alike.
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import asdict, dataclass, fields
 from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
 from slipest.cycle_estimator import CycleEstimate
-from slipest.features import INDEX, cycle_features
+from slipest.despike import outliers
+from slipest.features import _sample_noise, INDEX, cycle_features, sample_noise
 from slipest.inverse.base import Soil
 from slipest.segmentation import CycleSegmenter
+from slipest.units import G
 
 #: Estimation methods (``method=``).
 METHODS = ("default", "eq515")
-_DELTA_A = INDEX["delta_a"]
+#: Qualities of an estimated cycle.
+ESTIMATED = ("ok", "repaired")
+#: Cycles whose noise measures make the running noise estimate (their median) [-].
+NOISE_CYCLES = 9
+_DELTA_A, _NOISE, _NOISE_SMOOTH = INDEX["delta_a"], INDEX["noise"], INDEX["noise_smooth"]
+
+
+def _window_speed(t, theta_phase, half: float) -> float:
+    """Mean leg speed [rad/s] over the samples with phase in ``[0, half]`` (NaN when fewer than two)."""
+    inside = np.flatnonzero((theta_phase >= 0.0) & (theta_phase <= half))
+    if inside.size < 2:
+        return math.nan
+    i0, i1 = int(inside[0]), int(inside[-1])
+    span = float(t[i1] - t[i0])
+    return float(theta_phase[i1] - theta_phase[i0]) / span if span > 0 else math.nan
+#: Mean ``az`` over a cycle's rigid half [g] outside of which the input's units or axis are taken as wrong
+#: (the hub's own acceleration there is a few hundredths of g; a tilted IMU reads cos(tilt)).
+GRAVITY_RANGE = (0.8, 1.2)
+
+
+def _units_hint(mean_g: float) -> str:
+    """What a cycle's rigid-half mean ``az`` [g] outside :data:`GRAVITY_RANGE` most likely means."""
+    lo, hi = GRAVITY_RANGE
+    if lo <= mean_g * G <= hi:
+        return (f"az looks like it is in g (a rigid-phase mean of {mean_g * G:.2f} where gravity reads 9.81): "
+                "slipest wants m/s^2")
+    if -hi <= mean_g <= -lo or -hi <= mean_g * G <= -lo:
+        return f"az points down (a rigid-phase mean of {mean_g * G:.2f} m/s^2): the IMU axis is reversed"
+    if abs(mean_g) < 0.2:
+        return (f"az has no gravity in it (a rigid-phase mean of {mean_g * G:.2f} m/s^2): slipest wants the specific "
+                "force the IMU reports, +9.81 m/s^2 at rest")
+    return (f"az's rigid-phase mean is {mean_g * G:.2f} m/s^2, not gravity's 9.81: check the IMU's axis, units and "
+            "mounting")
+
+
+def _rigid_mean(theta_phase, az, half: float) -> float:
+    """Mean ``az`` [input units] over the rigid half's phases ``[-0.8 half, -0.05 half]`` (NaN when empty)."""
+    sel = (theta_phase >= -0.8 * half) & (theta_phase <= -0.05 * half)
+    return float(np.mean(az[sel])) if sel.any() else math.nan
+
+
 #: :meth:`SlipEstimator.push` has the estimator prefetch its tables into the CPU caches once this
 #: fraction of the last cycle's duration has passed since it closed (about 25 ms before the next
 #: close at the models' speed): the estimate on the closing sample then waits less on memory.
@@ -85,8 +132,13 @@ class Estimate:
     method; NaN otherwise); slip_ref [-]: the reference slip given with
     this cycle's samples (the last finite one; NaN: none), whether used or not;
     used_reference: the estimator learnt the soil from it; n_samples:
-    samples in the feature window; quality: ``"ok"``, or why the cycle was
-    not estimated (all estimated values NaN).
+    samples in the cycle; quality: ``"ok"``, ``"repaired"`` (estimated
+    without ``n_repaired`` of its samples: missing in short holes,
+    unusable or isolated outliers), or why the cycle was not estimated
+    (all estimated values NaN); misfit [-]: 1 when the
+    model explains the cycle's features, above 1 the factor by which it
+    did not and by which the likelihood was widened (NaN: not checked);
+    noise [g]: the IMU noise's standard deviation the cycle was estimated with.
     """
 
     cycle: int
@@ -106,24 +158,30 @@ class Estimate:
     slip_ref: float
     used_reference: bool
     n_samples: int
+    misfit: float = math.nan
+    noise: float = math.nan
+    n_repaired: int = 0
 
     @property
     def ok(self) -> bool:
-        return self.quality == "ok"
+        """True when the cycle was estimated (``quality`` ``"ok"`` or ``"repaired"``)."""
+        return self.quality in ESTIMATED
 
     def as_dict(self) -> dict:
         return asdict(self)
 
     @classmethod
     def of_cycle(cls, cyc, quality: str, slip_ref: float, delta_a: float = math.nan,
-                 r: CycleEstimate | None = None) -> "Estimate":
+                 r: CycleEstimate | None = None, noise: float = math.nan, n_repaired: int = 0) -> "Estimate":
         """The row of closed cycle ``cyc`` (a :class:`~slipest.segmentation.LegCycle`): estimated when
-        ``r`` is given (``quality`` "ok"), else every estimated value NaN and ``quality`` says why."""
+        ``r`` is given (``quality`` "ok" or "repaired"), else every estimated value NaN and ``quality``
+        says why."""
         r = r or _NO_ESTIMATE
         return cls(cycle=int(cyc.k), t_end=float(cyc.t_end), delta_a=delta_a, slip=r.slip, slip_std=r.slip_std,
                    dphi=r.dphi, dphi_std=r.dphi_std, quality=quality, t_start=float(cyc.t_start), kS=r.kS,
                    kS_std=r.kS_std, phiS=r.phiS, phiS_std=r.phiS_std, change_prob=r.change_prob, slip_ref=slip_ref,
-                   used_reference=bool(r.used_reference), n_samples=int(cyc.n_samples))
+                   used_reference=bool(r.used_reference), n_samples=int(cyc.n_samples), misfit=r.misfit, noise=noise,
+                   n_repaired=int(n_repaired))
 
 
 _NO_ESTIMATE = CycleEstimate.nan()
@@ -156,10 +214,20 @@ class SlipEstimator:
     ``soil_temper``, ...; :class:`~slipest.inverse.eq515.Eq515Tracker`:
     ``dphi0``, ``dphi0_std``, ``q``). model / calibration: the inverse
     model and calibration dicts to use instead of the shipped files.
-    speed_tol: a cycle whose mean leg speed differs from the one the models
-    were made at (0.63 rad/s) by more than this fraction is flagged
-    ``"speed"``, not estimated: the stick-slip waveform and its frequencies
-    depend on the speed, and the models know one speed only.
+    noise: the IMU noise's standard deviation [g] when known (None: estimated
+    from the data, see below).
+
+    Each cycle is taken whole, leg phase ``-pi/nL`` to ``pi/nL``: the stance
+    half (from 0) holds the features, the rigid half before it, where the hub
+    rides smoothly on the planted foot, measures the IMU noise
+    (:func:`slipest.features.sample_noise`); the noise the features are
+    referred to is the median of the last :data:`NOISE_CYCLES` cycles'
+    measures (``noise_estimate``). A cycle whose mean leg speed lies outside
+    the speeds the method's model covers (``filter.omega_range``) is flagged
+    ``"speed"``, not estimated. A cycle whose mean ``az`` over the rigid
+    half is not gravity (:data:`GRAVITY_RANGE`) is flagged ``"units"``; the
+    likely mistake (``az`` in g, gravity removed, axis reversed; ``theta``
+    in degrees for a speed 57 times too high) is said once in :attr:`hints`.
     """
 
     def __init__(
@@ -173,7 +241,7 @@ class SlipEstimator:
         estimator: dict | None = None,
         model=None,
         calibration: dict | None = None,
-        speed_tol: float = 0.1,
+        noise: float | None = None,
     ):
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, not {method!r}")
@@ -182,24 +250,28 @@ class SlipEstimator:
         self.soil = _soil_from(soil)
         self.use_reference = bool(use_reference)
         self.on_estimate = on_estimate
-        self._seg_opts = dict(segmenter or {})
+        half = math.pi / self.n_legs
+        # whole cycles (the rigid half measures the noise); 'partial' and the theta-step limit refer to the
+        # feature window, as for a feature-window segmenter
+        self._seg_opts = {"window": (-half, half), "complete_from": 0.0, "max_dtheta": half / 10.0, **(segmenter or {})}
         self._est_opts = dict(estimator or {})
         self._model = model
         self._calibration = calibration
-        if not speed_tol > 0:
-            raise ValueError(f"speed_tol={speed_tol} must be > 0")
-        self.speed_tol = float(speed_tol)
+        if noise is not None and not (math.isfinite(noise) and noise >= 0):
+            raise ValueError(f"noise={noise} g must be a finite number >= 0")
+        self.noise = noise
         self.segmenter = CycleSegmenter(self.n_legs, **self._seg_opts)
         self._make_filter()
         self._reset_counts()
         # load the compiled feature kernel now, not on the first cycle's latency (the segmenter hands
         # over read-only arrays: numba compiles those separately)
-        ph = np.linspace(0.0, math.pi / self.n_legs, 64)
+        ph = np.linspace(-half, half, 128)
         az = np.full(ph.size, 9.81)
-        tt = ph / 0.63
+        tt = (ph + half) / 0.63
         for arr in (ph, az, tt):
             arr.flags.writeable = False
         cycle_features(ph, az, tt, n_legs=self.n_legs)
+        sample_noise(ph, az, n_legs=self.n_legs)
 
     def _make_filter(self) -> None:
         """The cycle estimator of ``method`` (one place that knows the methods), checked against the geometry."""
@@ -218,7 +290,6 @@ class SlipEstimator:
         if self.filter.model_legs != self.n_legs:
             raise ValueError(f"{what} was made for a {self.filter.model_legs}-leg wheel-leg, not {self.n_legs} legs: "
                              "recalibrate/retrain it for this geometry")
-        self.model_omega = self.filter.model_omega
 
     def _reset_counts(self) -> None:
         self._ref = math.nan  # last finite reference slip since the last cycle closed
@@ -227,6 +298,29 @@ class SlipEstimator:
         self._n_estimates = 0
         self._n_flagged: dict[str, int] = {}
         self._n_reference = 0
+        self._n_misfit = 0
+        self._n_repaired_cycles = 0  # estimated cycles with samples left out
+        self._n_repaired = 0  # samples left out of estimated cycles (missing, unusable, outliers)
+        self._n_spikes = 0  # isolated outliers found
+        self._noises: deque = deque(maxlen=NOISE_CYCLES)  # the last cycles' noise measures [g]
+        self._noise_smooth = math.nan  # the last estimated cycle's smoothed noise [g]
+        self._hints: dict[str, str] = {}
+        #: The feature row (:data:`slipest.features.FEATURE_NAMES`) of the last cycle that reached the estimator.
+        self.last_features = None
+
+    @property
+    def hints(self) -> dict:
+        """What looks wrong with the input, once per kind (``"units"``, ``"degrees"``): a sentence for people
+        naming the likely mistake."""
+        return dict(self._hints)
+
+    @property
+    def noise_estimate(self) -> float:
+        """The IMU noise's standard deviation [g] the next cycle is referred to (the given ``noise``, else the
+        median of the last cycles' measures; NaN before the first)."""
+        if self.noise is not None:
+            return self.noise
+        return float(np.median(self._noises)) if self._noises else math.nan
 
     def reset(self) -> None:
         """Forget the stream and everything learnt (segmenter, soil filter, counters)."""
@@ -236,15 +330,23 @@ class SlipEstimator:
 
     @property
     def counters(self) -> dict:
-        """``samples``, ``cycles`` (estimates emitted), ``cycles_ok``, ``cycles_flagged``,
-        ``flagged_<reason>`` per reason, ``reference_used``, and the segmenter's counters
-        prefixed ``segmenter_``."""
+        """``samples``, ``cycles`` (estimates emitted), ``cycles_ok`` (estimated, repaired ones
+        included), ``cycles_flagged``,
+        ``flagged_<reason>`` per reason, ``reference_used``, ``cycles_misfit`` (estimated cycles the
+        model did not explain, their intervals widened), ``cycles_repaired`` and ``samples_repaired``
+        (estimated cycles with samples left out, and how many), ``spikes`` (isolated outliers found), ``noise_g`` (the running noise estimate [g]),
+        and the segmenter's counters prefixed ``segmenter_``."""
         c = {
             "samples": self._n_samples,
             "cycles": self._n_estimates,
             "cycles_ok": self._n_estimates - sum(self._n_flagged.values()),
             "cycles_flagged": sum(self._n_flagged.values()),
             "reference_used": self._n_reference,
+            "cycles_misfit": self._n_misfit,
+            "cycles_repaired": self._n_repaired_cycles,
+            "samples_repaired": self._n_repaired,
+            "spikes": self._n_spikes,
+            "noise_g": self.noise_estimate,
         }
         for k, v in sorted(self._n_flagged.items()):
             c[f"flagged_{k}"] = v
@@ -257,24 +359,63 @@ class SlipEstimator:
         self._n_flagged[quality] = self._n_flagged.get(quality, 0) + 1
         return Estimate.of_cycle(cyc, quality, ref)
 
+    def _clean(self, cyc) -> tuple:
+        """The cycle's samples to estimate from: ``(t, az, theta_phase, n_repaired)``, without the unusable
+        samples of its short holes (``cyc.n_missing`` counts them with the rows missing) and without its
+        isolated outliers (:func:`slipest.despike.outliers`)."""
+        tt, az, ph = cyc.t, cyc.az, cyc.theta_phase
+        repaired = cyc.n_missing
+        if repaired:
+            good = self.segmenter.usable(az)
+            tt, az, ph = tt[good], az[good], ph[good]
+        spikes = outliers(az)
+        n_spikes = int(np.count_nonzero(spikes))
+        if n_spikes:
+            keep = ~spikes
+            tt, az, ph = tt[keep], az[keep], ph[keep]
+            self._n_spikes += n_spikes
+            repaired += n_spikes
+        return tt, az, ph, repaired
+
     def _estimate(self, cyc, ref: float) -> Estimate:
         if cyc.quality != "ok":
             return self._flagged(cyc, cyc.quality, ref)
-        ph, tt = cyc.theta_phase, cyc.t
-        span = float(tt[-1] - tt[0]) if tt.size > 1 else 0.0
-        if span > 0 and abs((float(ph[-1] - ph[0]) / span) / self.model_omega - 1.0) > self.speed_tol:
+        half = math.pi / self.n_legs
+        omega = _window_speed(cyc.t, cyc.theta_phase, half)
+        lo, hi = self.filter.omega_range
+        if not lo <= omega <= hi:
+            if lo <= omega * math.pi / 180.0 <= hi and "degrees" not in self._hints:
+                self._hints["degrees"] = (f"theta looks like it is in degrees (a leg speed of {omega:.3g} per s, "
+                                          f"{omega * math.pi / 180:.3g} if degrees): slipest wants radians")
             return self._flagged(cyc, "speed", ref)
+        tt, az, ph, repaired = self._clean(cyc)
+        gravity = _rigid_mean(ph, az, half) / G
+        if math.isfinite(gravity) and not GRAVITY_RANGE[0] <= gravity <= GRAVITY_RANGE[1]:
+            self._hints.setdefault("units", _units_hint(gravity))
+            return self._flagged(cyc, "units", ref)
+        measured = float(_sample_noise(ph, az, half)) / G
+        if math.isfinite(measured):
+            self._noises.append(measured)
+        noise = self.noise_estimate
         try:
-            f = cycle_features(ph, cyc.az, tt, n_legs=self.n_legs)
+            f = cycle_features(ph, az, tt, n_legs=self.n_legs, noise=noise if math.isfinite(noise) else None)
         except ValueError:
             return self._flagged(cyc, "features", ref)
-        if not all(map(math.isfinite, f.tolist())):  # (numpy's reductions cost more on 18 values)
+        if not all(map(math.isfinite, f.tolist())):  # (numpy's reductions cost more on 20 values)
             return self._flagged(cyc, "features", ref)
+        self.last_features = f
         use = self.use_reference and math.isfinite(ref)
         r = self.filter.update(f, ref if use else None)
         if r.used_reference:
             self._n_reference += 1
-        return Estimate.of_cycle(cyc, "ok", ref, float(f[_DELTA_A]), r)
+        if r.misfit > 1.0:
+            self._n_misfit += 1
+        if repaired:
+            self._n_repaired_cycles += 1
+            self._n_repaired += repaired
+        self._noise_smooth = float(f[_NOISE_SMOOTH])
+        return Estimate.of_cycle(cyc, "repaired" if repaired else "ok", ref, float(f[_DELTA_A]), r, float(f[_NOISE]),
+                                 repaired)
 
     def _emit(self, cycles, refs) -> list:
         out = []
@@ -300,9 +441,10 @@ class SlipEstimator:
             out = self._emit(cycles, [ref] + [math.nan] * (len(cycles) - 1))
             last = cycles[-1]
             self._prefetch_at = last.t_end + PREFETCH_LEAD * (last.t_end - last.t_start)
-        elif t >= self._prefetch_at:  # the next close is near: warm the estimator's tables now
+        elif t >= self._prefetch_at:  # the next close is near: get the estimator's table ready, warm it
             self._prefetch_at = math.inf
-            self.filter.prefetch()
+            wt, wph = self.segmenter.open_window()
+            self.filter.prefetch(_window_speed(wt, wph, math.pi / self.n_legs), self._noise_smooth)
         if slip_ref is not None and math.isfinite(slip_ref):
             self._ref = float(slip_ref)
         return out
@@ -344,6 +486,15 @@ class SlipEstimator:
         self._accumulate(slip_ref[start:])
         return self._emit(cycles, refs)
 
+    def finish(self) -> list:
+        """Say the stream ended: the estimate of its last cycle, which no sample will close (``"partial"`` when
+        the stream stopped inside its window; see :meth:`slipest.segmentation.CycleSegmenter.finish`). Samples
+        pushed afterwards start a new stream; the soil filter keeps what it learnt."""
+        cycles = self.segmenter.finish()
+        ref = self._ref
+        self._ref = math.nan
+        return self._emit(cycles, [ref] * len(cycles))
+
     def _accumulate(self, refs: np.ndarray) -> None:
         """Remember the last finite reference of ``refs``."""
         ok = np.flatnonzero(np.isfinite(refs))
@@ -356,13 +507,15 @@ class SlipEstimator:
         A chunk is ``(t, az, theta)`` or ``(t, az, theta, slip_ref)`` arrays,
         or any object with ``t``, ``az``, ``theta`` (and optionally ``slip``)
         attributes (e.g. :class:`slipest.io.log_csv.LogChunk`,
-        :class:`slipest.model.stream.SampleChunk`).
+        :class:`slipest.model.stream.SampleChunk`). When the chunks run out,
+        the stream has ended (:meth:`finish`).
         """
         for ch in chunks:
             if isinstance(ch, tuple):
                 yield from self.push_many(*ch)
             else:
                 yield from self.push_many(ch.t, ch.az, ch.theta, getattr(ch, "slip", None))
+        yield from self.finish()
 
 
 __all__ = ["Estimate", "ESTIMATE_FIELDS", "METHODS", "SlipEstimator"]

@@ -34,19 +34,27 @@ How the stream is interpreted
   rises ``reverse_tol`` above its running minimum; the segmenter then
   re-synchronises on that sample (its first cycle may be ``"partial"``).
 * **Partial.** The first cycle after the stream starts (or re-synchronises)
+  on a sample (a sample less than 1e-4 rad before a cycle's start, as an
+  angle rounded in a log or a CAN frame (0.1 mrad) may be, starts that cycle)
   is emitted with quality ``"partial"`` when its window was not observed from
-  its start (the first sample was already at or past ``m_k + w0``).
-* **NaN / inf.** A sample with a non-finite ``t`` or ``theta`` cannot be
-  placed: it is dropped and counted, and flags the current cycle ``"nan"``
-  unless that cycle's window is already over. A NaN ``az`` in the window flags
-  ``"nan"``; ``|az| >= full_scale`` (default 16 g) or ``az`` equal to one of
-  ``clip_values`` flags ``"saturated"``.
-* **Gaps.** Over the window plus its two neighbour samples (the one before the
-  first window sample and the one after the last), a time step larger than
-  ``max_gap`` or a theta step larger than ``max_dtheta`` flags ``"gap"``.
-  ``max_gap=None`` (default) means ``gap_factor`` (5) times the median time
-  step of that same span; ``max_dtheta=None`` means a tenth of the window
-  width.
+  its start (the first sample was already at or past ``m_k + complete_from``,
+  by default ``m_k + w0``).
+* **Missing samples and holes.** A sample with a non-finite ``t`` or
+  ``theta`` cannot be placed: it is dropped and counted. A window sample
+  whose ``az`` is NaN, at or beyond ``full_scale`` (inf included) (default 16 g) or
+  equal to one of ``clip_values`` is *unusable*: kept in the arrays, never
+  to be estimated from. Over the window plus its two neighbour samples (the
+  one before the first window sample and the one after the last), a *hole*
+  is the time between two consecutive usable samples; a hole longer than
+  ``max_gap`` flags the cycle ``"nan"`` when a NaN ``az`` lies in it,
+  ``"saturated"`` when a saturated one does, else ``"gap"``; shorter holes
+  are left for the estimator to bridge. ``max_gap=None`` (default) means
+  ``gap_factor`` (5) times the median time step of the span (5 ms at 1 kHz:
+  up to four samples in a row may be missing). ``n_missing`` counts the
+  unusable samples and the rows missing from the span (a time step of
+  ``m`` median steps is ``m - 1`` missing rows, dropped samples included).
+  A theta step larger than ``max_dtheta`` flags ``"gap"`` (``None``: a tenth
+  of the window width).
 * **Time.** A timestamp not after the previous one (backwards or duplicated)
   is counted; a window containing one is flagged ``"time"``.
 * **Stops.** No cycle can be emitted while theta does not advance. A window
@@ -58,7 +66,11 @@ How the stream is interpreted
   empty arrays. A rover stopped inside a window forever therefore holds at
   most ``max_samples`` samples.
 * ``"sparse"``: fewer than ``min_samples`` samples in the window.
-* The last, unclosed cycle of a stream is never emitted.
+* **End of stream.** The last cycle has no closing sample: :meth:`CycleSegmenter.finish`
+  says the stream ended and emits it, ``"ok"`` (after the usual checks)
+  when its window was observed to within ``max_dtheta`` of its end, else
+  ``"partial"``. Pushing on after :meth:`~CycleSegmenter.finish` starts a
+  new stream (the counters go on).
 
 A cycle may have several flags (``LegCycle.flags``); ``quality`` is the first
 of them in the order of :data:`QUALITY_PRIORITY`, or ``"ok"``. Only ``"ok"``
@@ -75,7 +87,7 @@ import numpy as np
 
 from .units import G
 
-__all__ = ["QUALITIES", "QUALITY_PRIORITY", "LegCycle", "CycleSegmenter"]
+__all__ = ["QUALITIES", "QUALITY_PRIORITY", "LegCycle", "CycleSegmenter", "usable"]
 
 #: Flags in the order used to pick a cycle's ``quality`` (first present wins).
 QUALITY_PRIORITY = (
@@ -95,6 +107,7 @@ QUALITIES = ("ok",) + QUALITY_PRIORITY
 _TWO_PI = 2.0 * math.pi
 _INIT, _FORWARD, _REVERSE = 0, 1, 2  # modes; _INIT (a fresh state) until the first valid sample
 _CLOSE_EPS = 1e-6  # rad; pre-check margin before the exact floor() test
+_SYNC_EPS = 1e-4  # rad; a first sample this close before a cycle's start starts that cycle (a rounded angle)
 # a cycle's flags as bits, bit b standing for QUALITY_PRIORITY[b]
 _F_REVERSE, _F_TOO_LONG, _F_PARTIAL, _F_TIME, _F_GAP, _F_STOPPED, _F_NAN, _F_SATURATED, _F_SPARSE = (
     1 << b for b in range(len(QUALITY_PRIORITY)))
@@ -108,13 +121,15 @@ _DONE, _EMITTED, _FULL = 0, 1, 2
 @numba.njit(cache=True)
 def _window_checks(t, az, ph, has_pre, pre_t, pre_ph, has_post, post_t, post_ph, max_gap, gap_factor, max_dtheta,
                    stop_dtheta, stop_time, full_scale, clip_values):
-    """The sample checks of a closed window, one pass each (the cycle-close cost), as bits ``_F_*``.
+    """The sample checks of a closed window, one pass each (the cycle-close cost): ``(bits, n_missing)``,
+    the flags as bits ``_F_*`` and the samples missing or unusable (see "Missing samples and holes" in
+    the module docstring).
 
     ``t`` [s], ``az`` [m/s^2], ``ph`` [rad]: the window's samples (at least
-    one); the span checked for time order, gaps and stops is the window plus
+    one); the span checked for time order, holes and stops is the window plus
     its neighbours ``(pre_t, pre_ph)`` and ``(post_t, post_ph)`` when
-    ``has_pre`` / ``has_post``. ``max_gap`` [s]: NaN adapts it
-    (``gap_factor`` times the median positive time step of the span).
+    ``has_pre`` / ``has_post`` (taken as usable). ``max_gap`` [s]: NaN adapts
+    it (``gap_factor`` times the median positive time step of the span).
     ``max_dtheta``, ``stop_dtheta`` [rad], ``stop_time`` [s], ``full_scale``
     [m/s^2], ``clip_values`` [m/s^2]: see :class:`CycleSegmenter`.
     """
@@ -123,6 +138,7 @@ def _window_checks(t, az, ph, has_pre, pre_t, pre_ph, has_post, post_t, post_ph,
     m = n + a0 + (1 if has_post else 0)
     ts = np.empty(m)
     ps = np.empty(m)
+    bad = np.zeros(m, np.int64)  # 0 usable, 1 NaN az, 2 saturated (inf included)
     ts[a0:a0 + n] = t
     ps[a0:a0 + n] = ph
     if has_pre:
@@ -131,7 +147,21 @@ def _window_checks(t, az, ph, has_pre, pre_t, pre_ph, has_post, post_t, post_ph,
     if has_post:
         ts[m - 1] = post_t
         ps[m - 1] = post_ph
+    n_bad = 0
+    for i in range(n):
+        a = az[i]
+        if a != a:
+            bad[a0 + i] = 1
+        elif abs(a) >= full_scale:
+            bad[a0 + i] = 2
+        else:
+            for c in clip_values:
+                if a == c:
+                    bad[a0 + i] = 2
+        if bad[a0 + i]:
+            n_bad += 1
     bits = 0
+    n_missing = n_bad
     if m >= 2:
         pos = np.empty(m - 1)
         npos = 0
@@ -153,14 +183,33 @@ def _window_checks(t, az, ph, has_pre, pre_t, pre_ph, has_post, post_t, post_ph,
                 jump = True
         if jump:
             bits |= _F_GAP
-        elif npos:
-            if not math.isnan(max_gap):
-                if pmax > max_gap:
-                    bits |= _F_GAP
-            # adaptive: gap_factor times the median step; no step above gap_factor times the
-            # smallest (the usual even sampling) decides it without the median
-            elif pmax > gap_factor * pmin and pmax > gap_factor * np.median(pos[:npos]):
-                bits |= _F_GAP
+        # the median step is needed only when some step or some unusable sample may make a hole or a missing row
+        # (steps all alike are no hole unless a given max_gap is shorter than them)
+        if npos and (n_bad or pmax > 1.5 * pmin or pmax > max_gap):
+            med = np.median(pos[:npos])
+            limit = max_gap if not math.isnan(max_gap) else gap_factor * med
+            for i in range(1, m):  # rows missing from the stream
+                d = ts[i] - ts[i - 1]
+                if d > 1.5 * med:
+                    n_missing += int(round(d / med)) - 1
+            last = -1  # the last usable sample
+            why = 0
+            for i in range(m):
+                if bad[i]:
+                    why |= 1 << (bad[i] - 1)
+                    continue
+                if last >= 0 and ts[i] - ts[last] > limit:
+                    bits |= (_F_NAN if why & 1 else 0) | (_F_SATURATED if why & 2 else 0) | (0 if why else _F_GAP)
+                last = i
+                why = 0
+            if last >= 0 and why:  # unusable samples to the end of the span: a hole from the last usable one
+                if ts[m - 1] - ts[last] > limit:
+                    bits |= (_F_NAN if why & 1 else 0) | (_F_SATURATED if why & 2 else 0)
+            elif last < 0:  # nothing usable
+                bits |= (_F_NAN if why & 1 else 0) | (_F_SATURATED if why & 2 else 0)
+        elif n_bad == n:  # nothing usable in the window
+            for i in range(n):
+                bits |= _F_NAN if bad[a0 + i] == 1 else _F_SATURATED
         # stopped: from a sample, theta's running maximum takes more than stop_time to rise by stop_dtheta
         thr = np.empty(m)
         run = -np.inf
@@ -176,24 +225,17 @@ def _window_checks(t, az, ph, has_pre, pre_t, pre_ph, has_post, post_t, post_ph,
             if ts[jj - 1] - ts[i] > stop_time:
                 bits |= _F_STOPPED
                 break
-    for i in range(n):
-        a = az[i]
-        if math.isnan(a):
-            bits |= _F_NAN
-        elif abs(a) >= full_scale:
-            bits |= _F_SATURATED
-        else:
-            for c in clip_values:
-                if a == c:
-                    bits |= _F_SATURATED
-    return bits
+    elif n_bad:  # one sample, unusable
+        bits |= _F_NAN if bad[a0] == 1 else _F_SATURATED
+    return bits, n_missing
 
 
 _f8, _i8, _b1 = np.float64, np.int64, np.bool_
 #: A segmenter's whole state, one record read and written by the compiled :func:`_advance`.
 _STATE = np.dtype([
     # settings (see CycleSegmenter; h = pi/nL, P = 2h, max_gap NaN: adaptive)
-    ("h", _f8), ("P", _f8), ("invP", _f8), ("close_ph", _f8), ("w0", _f8), ("w1", _f8), ("unwrap", _b1),
+    ("h", _f8), ("P", _f8), ("invP", _f8), ("close_ph", _f8), ("w0", _f8), ("w1", _f8), ("complete_from", _f8),
+    ("unwrap", _b1),
     ("wlo", _f8), ("whi", _f8), ("reverse_tol", _f8), ("max_gap", _f8), ("gap_factor", _f8), ("max_dtheta", _f8),
     ("stop_dtheta", _f8), ("stop_time", _f8), ("full_scale", _f8), ("min_samples", _i8), ("max_samples", _i8),
     # the stream: mode, unwrapping, time order, progress (running max / min of theta), current cycle k
@@ -202,13 +244,14 @@ _STATE = np.dtype([
     ("k", _i8), ("mk", _f8), ("t_open", _f8), ("synced_here", _b1), ("sync_ph", _f8),
     # the open cycle's window: samples stored (n) and seen (nwin), its neighbour samples, NaN seen
     ("n", _i8), ("nwin", _i8), ("overflow", _b1), ("has_pre", _b1), ("pre_t", _f8), ("pre_ph", _f8),
-    ("has_post", _b1), ("post_t", _f8), ("post_ph", _f8), ("nanflag", _b1),
+    ("has_post", _b1), ("post_t", _f8), ("post_ph", _f8),
     # counters
     ("samples_seen", _i8), ("samples_invalid", _i8), ("samples_reverse", _i8), ("samples_overflow", _i8),
     ("time_backwards", _i8), ("time_duplicate", _i8), ("wraps", _i8), ("reversals", _i8), ("resyncs", _i8),
     ("cycles_skipped", _i8),
     # the cycle just emitted (its window is buf[:, :e_n] until _advance runs again)
     ("e_k", _i8), ("e_t_open", _f8), ("e_t_end", _f8), ("e_n", _i8), ("e_nwin", _i8), ("e_bits", _i8),
+    ("e_missing", _i8),
 ])
 
 
@@ -220,15 +263,16 @@ def _open_cycle(s):
     s.overflow = False
     s.has_pre = False
     s.has_post = False
-    s.nanflag = False
 
 
 @numba.njit(cache=True)
 def _emit(s, buf, clip_values, t_end, reason):
-    """Describe the open cycle, ending at ``t_end`` [s], in ``s.e_*``; ``reason``: 0 or ``_F_REVERSE``."""
+    """Describe the open cycle, ending at ``t_end`` [s], in ``s.e_*``; ``reason``: flags to add (0,
+    ``_F_REVERSE``, or ``_F_PARTIAL`` for a window cut short by the end of the stream)."""
     n = s.n
     bits = reason
-    partial = s.synced_here and s.sync_ph >= s.w0
+    missing = 0
+    partial = s.synced_here and s.sync_ph >= s.complete_from
     if partial:
         bits |= _F_PARTIAL
     if s.overflow:
@@ -236,13 +280,12 @@ def _emit(s, buf, clip_values, t_end, reason):
         n = 0
     else:
         if n:
-            bits |= _window_checks(buf[0, :n], buf[1, :n], buf[2, :n], s.has_pre, s.pre_t, s.pre_ph, s.has_post,
-                                   s.post_t, s.post_ph, s.max_gap, s.gap_factor, s.max_dtheta, s.stop_dtheta,
-                                   s.stop_time, s.full_scale, clip_values)
+            wbits, missing = _window_checks(buf[0, :n], buf[1, :n], buf[2, :n], s.has_pre, s.pre_t, s.pre_ph,
+                                            s.has_post, s.post_t, s.post_ph, s.max_gap, s.gap_factor, s.max_dtheta,
+                                            s.stop_dtheta, s.stop_time, s.full_scale, clip_values)
+            bits |= wbits
         elif not partial and reason == 0:
             bits |= _F_GAP
-        if s.nanflag:
-            bits |= _F_NAN
     if s.nwin < s.min_samples:
         bits |= _F_SPARSE
     s.e_k = s.k
@@ -251,6 +294,7 @@ def _emit(s, buf, clip_values, t_end, reason):
     s.e_n = n
     s.e_nwin = s.nwin
     s.e_bits = bits
+    s.e_missing = missing if n and not s.overflow else 0
 
 
 @numba.njit(cache=True)
@@ -273,8 +317,6 @@ def _advance(st, buf, t, az, theta, i, clip_values):
             raw = theta[i]
             if not (ti - ti == 0.0 and raw - raw == 0.0):
                 s.samples_invalid += 1
-                if s.mode == _FORWARD and s.tmax - s.mk < s.w1:
-                    s.nanflag = True
                 i += 1
                 continue
             th = raw
@@ -335,7 +377,7 @@ def _advance(st, buf, t, az, theta, i, clip_values):
                 # start a cycle on this sample with no history
                 s.mode = _FORWARD
                 s.tmax = th
-                s.k = math.floor((th + s.h) * s.invP)
+                s.k = math.floor((th + s.h + _SYNC_EPS) * s.invP)  # a hair before a cycle's start: that cycle
                 s.mk = s.k * s.P
                 s.t_open = ti
                 s.synced_here = True
@@ -377,6 +419,36 @@ def _advance(st, buf, t, az, theta, i, clip_values):
     return i, _DONE
 
 
+@numba.njit(cache=True)
+def _finish(st, buf, clip_values):
+    """End the stream of ``st[0]``: describe its open cycle in ``s.e_*`` (True), if it has one with window
+    samples, and go back to waiting for a first sample."""
+    s = st[0]
+    emitted = False
+    if s.mode == _FORWARD and s.nwin > 0:
+        cut = s.w1 - (s.tmax - s.mk) > s.max_dtheta
+        _emit(s, buf, clip_values, s.last_t, _F_PARTIAL if cut else 0)
+        emitted = True
+    s.mode = _INIT
+    s.resume = False
+    s.has_prev = False
+    s.have_raw = False
+    s.nwrap = 0
+    s.last_t = -math.inf
+    _open_cycle(s)
+    return emitted
+
+
+def usable(az, full_scale: float = 16 * G, clip_values=()) -> np.ndarray:
+    """Mask of the samples whose ``az`` [m/s^2] may be estimated from: finite, below ``full_scale`` in
+    magnitude, not one of ``clip_values`` (the segmenter's own rule; give it the segmenter's settings)."""
+    az = np.asarray(az, dtype=float)
+    ok = np.isfinite(az) & (np.abs(az) < full_scale)
+    for c in clip_values:
+        ok &= az != c
+    return ok
+
+
 @dataclass(frozen=True, eq=False)
 class LegCycle:
     """One closed leg cycle.
@@ -390,7 +462,11 @@ class LegCycle:
     window, in arrival order (read-only arrays). ``n_samples``: samples the
     window had (equal to ``len(t)`` except for ``"too_long"``, whose arrays
     are empty). ``quality``: ``"ok"`` or why it must not be estimated;
-    ``flags``: every reason found.
+    ``flags``: every reason found. ``n_missing``: samples of the window
+    missing or unusable (NaN/inf or saturated ``az``, rows absent from the
+    stream) in holes short enough to bridge; an ``"ok"`` cycle's unusable
+    samples are still in the arrays and must be left out of its features
+    (:meth:`CycleSegmenter.usable`).
     """
 
     k: int
@@ -402,6 +478,7 @@ class LegCycle:
     n_samples: int
     quality: str
     flags: tuple
+    n_missing: int = 0
 
     @property
     def ok(self) -> bool:
@@ -418,6 +495,7 @@ class LegCycle:
             and self.n_samples == other.n_samples
             and self.quality == other.quality
             and self.flags == other.flags
+            and self.n_missing == other.n_missing
             and np.array_equal(self.t, other.t, equal_nan=True)
             and np.array_equal(self.az, other.az, equal_nan=True)
             and np.array_equal(self.theta_phase, other.theta_phase, equal_nan=True)
@@ -428,7 +506,7 @@ class LegCycle:
     def __repr__(self):
         return (
             f"LegCycle(k={self.k}, t_start={self.t_start:.6f}, t_end={self.t_end:.6f}, "
-            f"n_samples={self.n_samples}, quality={self.quality!r}, flags={self.flags})"
+            f"n_samples={self.n_samples}, n_missing={self.n_missing}, quality={self.quality!r}, flags={self.flags})"
         )
 
 
@@ -437,8 +515,13 @@ class CycleSegmenter:
 
     Parameters (SI):
       n_legs: legs of the wheel-leg (``nL``).
-      window: ``(w0, w1)`` [rad], the feature window as phases relative to
-        the midstance, ``-pi/nL <= w0 < w1 <= pi/nL``; default ``(0, pi/nL)``.
+      window: ``(w0, w1)`` [rad], the window a cycle hands over, as phases
+        relative to the midstance, ``-pi/nL <= w0 < w1 <= pi/nL``; default
+        ``(0, pi/nL)`` (the feature window).
+      complete_from: [rad] the first cycle after the stream starts (or
+        re-synchronises) is ``"partial"`` when its first sample came at or
+        after this phase; default ``w0`` (a window that takes the rigid half
+        too can say that only the feature window, from 0, must be whole).
       max_gap: [s] largest allowed time step in the window span; None: adapt
         (``gap_factor`` times the span's median step).
       gap_factor: see ``max_gap``.
@@ -461,6 +544,7 @@ class CycleSegmenter:
         n_legs: int = 4,
         window: tuple[float, float] | None = None,
         *,
+        complete_from: float | None = None,
         max_gap: float | None = None,
         gap_factor: float = 5.0,
         max_dtheta: float | None = None,
@@ -487,6 +571,9 @@ class CycleSegmenter:
                 f"window {window!r} must satisfy -pi/n_legs <= w0 < w1 <= pi/n_legs (pi/n_legs = {h:.6f} rad)"
             )
         self.window = (w0, w1)
+        self.complete_from = w0 if complete_from is None else float(complete_from)
+        if not w0 <= self.complete_from < w1:
+            raise ValueError(f"complete_from={complete_from!r} rad must lie in the window [{w0:.6f}, {w1:.6f})")
         if max_gap is not None and not max_gap > 0:
             raise ValueError(f"max_gap must be > 0 s or None, got {max_gap!r}")
         if not gap_factor > 1:
@@ -525,6 +612,7 @@ class CycleSegmenter:
         self._fresh = np.zeros(1, _STATE)  # the state of a new stream
         for name, value in dict(
             h=h, P=2.0 * h, invP=1.0 / (2.0 * h), close_ph=h - _CLOSE_EPS, w0=w0, w1=w1,
+            complete_from=self.complete_from,
             unwrap=theta_wrap == "auto", wlo=_TWO_PI - self.wrap_tol, whi=_TWO_PI + self.wrap_tol,
             reverse_tol=self.reverse_tol, max_gap=math.nan if max_gap is None else self.max_gap,
             gap_factor=self.gap_factor, max_dtheta=self.max_dtheta, stop_dtheta=self.stop_dtheta,
@@ -545,6 +633,17 @@ class CycleSegmenter:
         """Forget the stream (buffers keep their current capacity)."""
         self._st = self._fresh.copy()
         self._c_cycles = dict.fromkeys(QUALITIES, 0)
+
+    def usable(self, az) -> np.ndarray:
+        """Mask of the samples of a cycle's ``az`` [m/s^2] that may be estimated from (:func:`usable` with
+        this segmenter's ``full_scale`` and ``clip_values``)."""
+        return usable(az, self.full_scale, self.clip_values)
+
+    def open_window(self) -> tuple[np.ndarray, np.ndarray]:
+        """The samples the open cycle's window holds so far: ``(t [s], theta_phase [rad])`` (views, read
+        them before the next push)."""
+        n = int(self._st[0]["n"])
+        return self._buf[0, :n], self._buf[2, :n]
 
     @property
     def buffer_capacity(self) -> int:
@@ -593,6 +692,13 @@ class CycleSegmenter:
             )
         return self._run(t, az, theta)
 
+    def finish(self) -> list:
+        """Say the stream ended: the cycles this completes (the open one, if its window has samples; see
+        "End of stream" in the module docstring). The next sample pushed starts a new stream."""
+        if _finish(self._st, self._buf, self.clip_values):
+            return [self._cycle()]
+        return []
+
     def _run(self, t, az, theta) -> list:
         """Feed contiguous float64 arrays to the compiled segmenter; the cycles they closed."""
         out = []
@@ -620,4 +726,4 @@ class CycleSegmenter:
         window.flags.writeable = False
         t, az, ph = window
         return LegCycle(int(s["e_k"]), float(s["e_t_open"]), float(s["e_t_end"]), t, az, ph, int(s["e_nwin"]),
-                        quality, flags)
+                        quality, flags, int(s["e_missing"]))

@@ -68,6 +68,29 @@ def test_dbc_scalings_meet_the_requirements():
     assert slip.scale <= 1e-4 and (slip.minimum, slip.maximum) == (0, 1)
     assert dphi.minimum <= -1 and dphi.maximum >= 1 and dphi.unit == "rad"
     assert est.get_signal_by_name("Quality").choices[cm.QUALITY_INVALID] == "INVALID"
+    # the quality codes are the DBC's value table, on every wheel's message
+    for w in range(cm.N_WHEELS):
+        choices = {int(k): str(v) for k, v in
+                   db.get_message_by_name(f"SlipEstimate_W{w}").get_signal_by_name("Quality").choices.items()}
+        assert choices == {cm.QUALITY_OK: "OK", cm.QUALITY_REPAIRED: "REPAIRED", cm.QUALITY_MISFIT: "MISFIT",
+                           cm.QUALITY_REPAIRED_MISFIT: "REPAIRED_MISFIT", cm.QUALITY_INVALID: "INVALID"}
+
+
+def test_an_estimate_is_sent_with_the_quality_a_rover_must_know():
+    from slipest.io.can_source import estimate_message
+    from slipest.online import Estimate
+
+    base = dict(cycle=3, t_end=1.0, delta_a=1.0, slip=0.3, slip_std=0.05, dphi=0.2, dphi_std=0.02, t_start=0.0,
+                kS=900.0, kS_std=10.0, phiS=0.5, phiS_std=0.01, change_prob=0.0, slip_ref=math.nan,
+                used_reference=False, n_samples=2500)
+    cases = [(dict(quality="ok", misfit=1.0), cm.QUALITY_OK), (dict(quality="repaired", misfit=1.0, n_repaired=2),
+             cm.QUALITY_REPAIRED), (dict(quality="ok", misfit=3.5), cm.QUALITY_MISFIT),
+             (dict(quality="repaired", misfit=2.0, n_repaired=1), cm.QUALITY_REPAIRED_MISFIT),
+             (dict(quality="gap", slip=math.nan, slip_std=math.nan, dphi=math.nan, dphi_std=math.nan),
+              cm.QUALITY_INVALID)]
+    for fields, code in cases:
+        rec = cm.decode(estimate_message(2, Estimate(**{**base, **fields})))
+        assert rec.quality == code and rec.wheel == 2
 
 
 # --------------------------------------------------------------------------- round trips

@@ -66,6 +66,26 @@ def test_feed_duration_stops_the_stream():
     assert t.size == 1000 and t[-1] < 1.0
 
 
+def test_feed_follows_a_changing_leg_speed_and_wheels_must_share_it():
+    omegas = [0.5, 0.5, 1.0, 0.8]
+    drive = [Scenario.per_cycle(StickSlipParams(), imu={"noise_g": 0.01, "seed": s}, slip=[0.2] * 4, omega=omegas)
+             for s in (1, 2)]
+    tables = list(ScenarioFeed(drive))
+    imu = np.concatenate(tables)
+    imu = imu[imu["kind"] == KIND_IMU]
+    duration = sum(2 * math.pi / (4 * w) for w in omegas)
+    # one frame per wheel every millisecond over the four cycles' total duration, in time order
+    assert imu.size == ScenarioFeed(drive).expected_imu_frames == 2 * math.ceil(duration * 1000 - 1e-9)
+    assert np.all(np.diff(imu["t"]) >= 0)
+    last = imu[imu["cycle"] == 2]
+    assert last["t"].max() - last["t"].min() == pytest.approx(2 * math.pi / (4 * 1.0), abs=2e-3)
+    # a duration inside cycle 2 keeps cycles 0-2
+    assert ScenarioFeed(drive, duration=2 * math.pi / (4 * 0.5) * 2 + 0.1).n_cycles == 3
+    other = Scenario.per_cycle(StickSlipParams(), imu={"noise_g": 0.01, "seed": 3}, slip=[0.2] * 4, omega=[0.5] * 4)
+    with pytest.raises(ValueError, match="wheel 1: .*same rate, legs, leg speeds"):
+        ScenarioFeed([drive[0], other])
+
+
 def test_wrap_angle_is_minus_pi_to_pi():
     got = wrap_angle([math.pi, -math.pi, 3 * math.pi + 0.1]).tolist()
     assert got == pytest.approx([-math.pi, -math.pi, -math.pi + 0.1])

@@ -232,15 +232,20 @@ def test_live_serial_estimates_every_intact_cycle_and_never_a_damaged_one(tmp_pa
         assert dev.wait(60) == 0, dev.stderr
         assert est.wait(60) == 0, est.stderr
     got = rows(est)
-    bad = {(0, 1): "nan", (1, 3): "nan", (0, 4): "nan"}
+    # a lost frame and two corrupted ones are short holes: bridged, the cycle estimated and marked 'repaired';
+    # 150 ms of a stuck sensor is a long one: flagged, never estimated
+    bad = {(0, 4): "nan"}
+    repaired = {(0, 1): 1, (1, 3): 2}
     for key, quality in bad.items():
-        assert got[key]["quality"] == quality and got[key]["slip"] == "nan"  # flagged, never estimated
+        assert got[key]["quality"] == quality and got[key]["slip"] == "nan"
     for wheel in (0, 1):
-        for k in range(5):
+        for k in range(6):
             if (wheel, k) in bad:
                 continue
             r = got[(wheel, k)]
-            assert r["quality"] == "ok" and 0.1 < float(r["slip"]) < 0.45, r  # true slip 0.25
+            want = "repaired" if (wheel, k) in repaired else "ok"
+            assert r["quality"] == want and 0.1 < float(r["slip"]) < 0.45, r  # true slip 0.25
+            assert int(r["n_repaired"]) == repaired.get((wheel, k), 0)
     rep = json.loads(live_report.read_text())
     dev_rep = json.loads(device_report.read_text())
     src, wheels = rep["source"], rep["estimation"]

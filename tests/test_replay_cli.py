@@ -4,6 +4,8 @@ import csv
 import io
 import json
 import math
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +16,8 @@ from slipest.io.log_csv import LogWriter
 from slipest.model.params import StickSlipParams
 from slipest.model.scenario import Scenario
 from slipest.model.stream import simulate_stream
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 
 N_CYCLES = 7
 
@@ -47,15 +51,15 @@ def test_csv_to_stdout_one_row_per_cycle(log_path, capsys):
     assert tuple(rows[0].keys()) == COLUMNS
     for needed in ("cycle", "t_end", "delta_a", "slip", "slip_std", "dphi", "dphi_std", "quality"):
         assert needed in COLUMNS
-    # the log starts at theta = -pi/4: a 1-sample "partial" cycle -1, then every whole cycle but the last
-    assert [int(r["cycle"]) for r in rows] == list(range(-1, N_CYCLES - 1))
-    assert rows[0]["quality"] == "partial" and rows[0]["slip"] == "nan"
+    # the log starts at theta = -pi/4 (written as -0.7853982) and ends on cycle N-1's last sample: N cycles, N
+    # estimates (the last one at the end of the log)
+    assert [int(r["cycle"]) for r in rows] == list(range(N_CYCLES))
     ok = [r for r in rows if r["quality"] == "ok"]
-    assert len(ok) == N_CYCLES - 1
+    assert len(ok) == N_CYCLES and "IMU noise 0.01" in err
     for r in ok:
         assert 0.0 <= float(r["slip"]) <= 0.55 and float(r["slip_std"]) > 0 and float(r["dphi_std"]) > 0
     # summary on stderr only
-    assert "leg cycles" in err and f"{N_CYCLES - 1} estimated" in err
+    assert "leg cycles" in err and f"{N_CYCLES} estimated" in err
     assert "truth" not in err
 
 
@@ -78,11 +82,11 @@ def test_jsonl_and_truth_summary(log_path, capsys):
     assert rc == 0
     recs = [json.loads(line) for line in out.splitlines()]
     assert len(recs) == N_CYCLES and list(recs[0].keys()) == list(COLUMNS)
-    assert recs[0]["slip"] is None and recs[0]["quality"] == "partial"  # NaN -> null
-    assert all(isinstance(r["slip"], float) for r in recs[1:])
+    assert all(isinstance(r["slip"], float) for r in recs)
+    assert recs[0]["slip_ref"] is not None and all(r["misfit"] is None or r["misfit"] >= 1 for r in recs)
     assert "truth: slip RMSE" in err and "95% interval coverage" in err
     # the summary's RMSE is the RMSE of the written rows against slip_ref
-    e = np.array([r["slip"] - r["slip_ref"] for r in recs[1:]])
+    e = np.array([r["slip"] - r["slip_ref"] for r in recs])
     rmse = float(err.split("truth: slip RMSE ")[1].split(",")[0])
     assert rmse == pytest.approx(float(np.sqrt(np.mean(e**2))), abs=1e-4)
     # the metadata give phiS and phiD: dphi is compared too
@@ -134,21 +138,16 @@ def test_legs_from_metadata_or_option(log_path, capsys):
     assert rc == 2 and "4-leg" in err and out == ""
 
 
-def _model_for_legs(path, n_legs):
-    """A small inverse model trained like tools/train_inverse.py does, for another wheel-leg geometry."""
-    from slipest.inverse.simdata import RANGES, draw_soils, simulate_features
-    from slipest.inverse.surrogate import FeatureSurrogate, save_inverse_model
+def _model_for_legs(path, n_legs, omega):
+    """A small inverse model for another wheel-leg geometry, trained by tools/train_inverse.py (two speed nodes
+    around ``omega``, a small schedule: quick, coarse)."""
+    import train_inverse  # tools/train_inverse.py
 
-    rng = np.random.default_rng(11)
-    base = StickSlipParams().with_(nL=n_legs)
-    n = 1500
-    soils = draw_soils(n, rng)
-    slip = rng.uniform(*RANGES["slip"], n)
-    feats = simulate_features(slip, soils[:, 0], soils[:, 1], soils[:, 2], rng=rng, base=base)
-    m = FeatureSurrogate.fit(feats, slip, soils[:, 0], soils[:, 1], soils[:, 2], degree=3,
-                             ranges=[RANGES[k] for k in ("slip", "kS", "phiD", "dphi")],
-                             meta={"training": {"n_legs": n_legs, "omega": base.omega}})
-    return save_inverse_model(m, path)
+    lo, hi = 0.9 * omega, 1.1 * omega
+    rc = train_inverse.main(["--legs", str(n_legs), "--nodes", "2", "--span", str(lo), str(hi), "--n-node", "1500",
+                             "--schedule", "tiny", "--n-val", "60", "--n-check", "30", "--out", str(path)])
+    assert rc == 0
+    return path
 
 
 def test_model_option_estimates_another_geometry(tmp_path, capsys):
@@ -161,7 +160,8 @@ def test_model_option_estimates_another_geometry(tmp_path, capsys):
     # the shipped model is for 4 legs: refused
     rc, out, err = run([log6], capsys)
     assert rc == 2 and "4-leg" in err and out == ""
-    model6 = _model_for_legs(tmp_path / "six_legs.json", 6)
+    model6 = _model_for_legs(tmp_path / "six_legs.npz", 6, params.omega)
+    capsys.readouterr()  # (the training's own output)
     rc, out, err = run([log6, "--model", model6], capsys)
     assert rc == 0, err
     rows = list(csv.DictReader(io.StringIO(out)))
@@ -172,4 +172,32 @@ def test_model_option_estimates_another_geometry(tmp_path, capsys):
     bad = tmp_path / "bad.json"
     bad.write_text("{not json")
     rc, out, err = run([log6, "--model", bad], capsys)
-    assert rc == 2 and "bad.json" in err and "not valid JSON" in err and out == ""
+    assert rc == 2 and "bad.json" in err and "not an inverse model file" in err and out == ""
+
+
+@pytest.mark.parametrize("mistake, hint", [
+    ("az_in_g", "az looks like it is in g"),
+    ("gravity_removed", "az has no gravity in it"),
+    ("axis_down", "az points down"),
+    ("theta_degrees", "theta looks like it is in degrees"),
+])
+def test_a_unit_mistake_is_named_and_nothing_is_estimated(log_path, tmp_path, capsys, mistake, hint):
+    from slipest.io.log_csv import read_log
+
+    d = read_log(log_path)
+    az, theta = d.az, d.theta
+    az = {"az_in_g": az / 9.80665, "gravity_removed": az - 9.80665, "axis_down": -az}.get(mistake, az)
+    if mistake == "theta_degrees":
+        theta = np.degrees(theta)
+    bad = tmp_path / f"{mistake}.csv"
+    with LogWriter(bad, ("t", "az", "theta"), metadata={"nL": 4}) as w:
+        w.write(d.t, az, theta)
+    rc, out, err = run([bad], capsys)
+    assert rc == 1, err
+    rows = list(csv.DictReader(io.StringIO(out)))
+    assert rows and not any(r["quality"] == "ok" for r in rows)
+    assert hint in err and "no leg cycle was estimated" in err
+    if mistake == "az_in_g":  # JSON lines: NaN is null
+        rc, out, err = run([bad, "--format", "jsonl"], capsys)
+        recs = [json.loads(line) for line in out.splitlines()]
+        assert rc == 1 and recs and all(r["slip"] is None and r["quality"] == "units" for r in recs)

@@ -223,6 +223,44 @@ def test_first_partial_cycle():
     assert cycles[0].k == 0 and cycles[0].ok
 
 
+def test_a_start_a_hair_before_a_cycle_is_that_cycle():
+    # a log's rounded angle: -pi/4 written with 7 decimals is -0.7853982, 2e-8 rad before cycle 0 starts
+    t, az, th = make_stream(T=6.0, th0=-0.7853982)
+    cycles = run_many(CycleSegmenter(window=(-H, H)), t, az, th)
+    assert cycles[0].k == 0 and cycles[0].ok and cycles[0].t_start == t[0]
+    assert all(c.ok for c in cycles)
+
+
+@pytest.mark.parametrize("window", [(0.0, H), (-H, H)])
+def test_finish_emits_the_last_cycle_complete_or_partial(window):
+    # a stream that ends on the last sample of cycle 2 (the sample closing it never comes)
+    t, az, th = make_stream(T=10.0, th0=-H)
+    end = int(np.flatnonzero(th - 2 * P < H)[-1]) + 1
+    seg = CycleSegmenter(window=window)
+    first = cycles = run_many(seg, t[:end], az[:end], th[:end])
+    assert [c.k for c in cycles] == [0, 1] and cycles[1].ok
+    last = seg.finish()
+    assert [c.k for c in last] == [2] and last[0].ok and last[0].t_end == t[end - 1]
+    assert_cycle_matches_stream(last[0], t, az, th, window)
+    assert seg.counters["cycles_emitted"] == 3
+    assert seg.finish() == []  # nothing open any more
+    # the stream stopped in the middle of cycle 2's window: partial, never ok
+    cut = int(np.flatnonzero(th - 2 * P < 0.5 * H)[-1]) + 1
+    seg = CycleSegmenter(window=window)
+    run_many(seg, t[:cut], az[:cut], th[:cut])
+    last = seg.finish()
+    assert [c.k for c in last] == [2] and last[0].quality == "partial"
+    # pushing on starts a new stream: a clock that starts again is not "time backwards"
+    again = run_many(seg, t[:end], az[:end], th[:end]) + seg.finish()
+    assert [(c.k, c.quality) for c in again] == [(c.k, c.quality) for c in first] + [(2, "ok")]
+    assert seg.counters["time_backwards"] == 0 and seg.counters["resyncs"] == 2
+
+
+def test_finish_on_a_fresh_segmenter_emits_nothing():
+    seg = CycleSegmenter()
+    assert seg.finish() == [] and seg.counters["cycles_emitted"] == 0
+
+
 def test_time_gap_in_window_flags_gap():
     t, az, th = make_stream(T=20.0)
     # drop 50 ms of samples in the middle of cycle 3's window
@@ -420,49 +458,65 @@ def test_encoder_jitter_below_reverse_tol_is_not_reverse():
     assert len(cycles) >= 5 and all(c.ok for c in cycles)
 
 
-def test_nan_az_in_window_flags_nan_only_that_cycle():
+@pytest.mark.parametrize("run, quality", [(1, "ok"), (4, "ok"), (5, "nan")])
+def test_nan_az_in_window_bridged_when_short_flagged_when_long(run, quality):
+    # at 1 kHz the adaptive max_gap is 5 ms: up to four NaN samples in a row are a hole the estimator bridges
     t, az, th = make_stream(T=15.0)
     az2 = az.copy()
     i = int(np.flatnonzero(th >= 2 * P + 0.4)[0])
-    az2[i] = np.nan
+    az2[i : i + run] = np.nan
     j = int(np.flatnonzero(th >= 3 * P - 0.4)[0])  # braking half: outside the window
-    az2[j] = np.nan
-    cycles = by_k(run_many(CycleSegmenter(), t, az2, th))
-    assert cycles[2].quality == "nan"
-    assert np.isnan(cycles[2].az).sum() == 1
-    assert cycles[1].ok and cycles[3].ok
+    az2[j : j + 10] = np.nan
+    seg = CycleSegmenter()
+    cycles = by_k(run_many(seg, t, az2, th))
+    assert cycles[2].quality == quality and cycles[2].n_missing == run
+    assert np.isnan(cycles[2].az).sum() == run and seg.usable(cycles[2].az).sum() == cycles[2].n_samples - run
+    assert cycles[1].ok and cycles[3].ok and cycles[1].n_missing == cycles[3].n_missing == 0
 
 
 @pytest.mark.parametrize("which", ["theta", "t"])
-def test_nan_theta_or_t_sample_dropped_and_flags_nan(which):
+def test_nan_theta_or_t_sample_dropped_and_counted_missing(which):
     t, az, th = make_stream(T=15.0)
     t2, th2 = t.copy(), th.copy()
     i = int(np.flatnonzero(th >= 2 * P + 0.4)[0])
     (th2 if which == "theta" else t2)[i] = np.nan
     seg = CycleSegmenter()
     cycles = by_k(run_many(seg, t2, az, th2))
-    assert cycles[2].quality == "nan"
+    assert cycles[2].ok and cycles[2].n_missing == 1
     assert cycles[2].n_samples == expected_window(t, az, th, 2)[0].size - 1
     assert seg.counters["samples_invalid"] == 1
-    assert cycles[1].ok and cycles[3].ok
+    # six rows in a row: a 7 ms hole, flagged
+    (th2 if which == "theta" else t2)[i : i + 6] = np.nan
+    cycles = by_k(run_many(CycleSegmenter(), t2, az, th2))
+    assert cycles[2].quality == "gap" and cycles[1].ok and cycles[3].ok
 
 
-def test_saturated_and_clip_values():
+def test_rows_missing_from_the_stream_are_counted():
+    t, az, th = make_stream(T=15.0)
+    i = int(np.flatnonzero(th >= 2 * P + 0.4)[0])
+    keep = np.ones(t.size, bool)
+    keep[i : i + 3] = False
+    keep[i + 50] = False
+    cycles = by_k(run_many(CycleSegmenter(), t[keep], az[keep], th[keep]))
+    assert cycles[2].ok and cycles[2].n_missing == 4
+
+
+@pytest.mark.parametrize("run, quality", [(1, "ok"), (5, "saturated")])
+def test_saturated_and_clip_values(run, quality):
     t, az, th = make_stream(T=15.0)
     az2 = az.copy()
     i = int(np.flatnonzero(th >= 1 * P + 0.4)[0])
-    az2[i] = 16 * G  # full scale
+    az2[i : i + run] = 16 * G  # full scale
     j = int(np.flatnonzero(th >= 2 * P + 0.4)[0])
-    az2[j] = -np.inf
+    az2[j : j + run] = -np.inf
     m = int(np.flatnonzero(th >= 3 * P + 0.4)[0])
-    az2[m] = 77.125  # the IMU's clip value
+    az2[m : m + run] = 77.125  # the IMU's clip value
     cycles = by_k(run_many(CycleSegmenter(clip_values=(77.125, -77.125)), t, az2, th))
-    assert cycles[1].quality == "saturated"
-    assert cycles[2].quality == "saturated"
-    assert cycles[3].quality == "saturated"
+    for k in (1, 2, 3):
+        assert cycles[k].quality == quality and cycles[k].n_missing == run
     assert cycles[0].ok and cycles[4].ok
     # without the clip value, 77.125 m/s^2 (< 16 g) is a legitimate reading
-    assert by_k(run_many(CycleSegmenter(), t, az2, th))[3].ok
+    assert by_k(run_many(CycleSegmenter(), t, az2, th))[3].n_missing == 0
 
 
 @pytest.mark.parametrize("kind", ["duplicate", "backwards"])
@@ -507,8 +561,8 @@ def test_sparse_window():
 
 
 def faulty_stream():
-    """Every fault at once: wraps, jitter, gaps, stop, reverse, NaNs,
-    saturation, duplicate and backward timestamps."""
+    """Every fault at once: wraps, jitter, gaps, stop, reverse, NaNs (single and runs),
+    saturation (single and runs), duplicate and backward timestamps."""
     rng = np.random.default_rng(7)
     t, az, th = make_stream(T=60.0)
     t = t + rng.uniform(-2e-4, 2e-4, t.size)
@@ -525,6 +579,10 @@ def faulty_stream():
     th[rng.integers(0, t.size, 3)] = np.nan
     t[rng.integers(0, t.size, 2)] = np.nan
     az[rng.integers(0, t.size, 4)] = 200.0
+    for i in rng.integers(0, t.size - 20, 2):  # runs too long to bridge
+        az[i : i + 12] = np.nan
+    for i in rng.integers(0, t.size - 20, 2):
+        az[i : i + 12] = 200.0
     dup = rng.integers(1, t.size, 3)
     t[dup] = t[dup - 1]
     keep = np.ones(t.size, bool)
@@ -631,8 +689,8 @@ def test_push_equals_push_many_property(data):
             assert c.t.size == 0 and c.n_samples > kw["max_samples"]
         else:
             assert c.t.size == c.n_samples
-        if c.ok:
-            assert np.all(np.isfinite(c.az)) and np.all(np.diff(c.t) > 0)
+        if c.ok:  # unusable samples only in short holes, counted
+            assert (~seg1.usable(c.az)).sum() <= c.n_missing and np.all(np.diff(c.t) > 0)
     assert seg1.buffer_capacity <= kw["max_samples"]
 
 
@@ -708,28 +766,49 @@ def test_push_is_fast_enough():
 # ---------------------------------------------------------------------------
 
 
-def _numpy_window_flags(t, az, ph, pre, post, max_gap, gap_factor, max_dtheta, stop_dtheta, stop_time, full_scale, clip):
+def _numpy_window_checks(t, az, ph, pre, post, max_gap, gap_factor, max_dtheta, stop_dtheta, stop_time, full_scale,
+                         clip):
+    """The rules of "Missing samples and holes" (and the rest), stated plainly: (flags, n_missing)."""
     ts = np.concatenate([[pre[0]] if pre else [], t, [post[0]] if post else []])
     ps = np.concatenate([[pre[1]] if pre else [], ph, [post[1]] if post else []])
+    off = 1 if pre else 0
+    nan = np.isnan(az)
+    sat = ~nan & ((np.abs(az) >= full_scale) | np.isin(az, clip))
+    kind = np.zeros(ts.size, int)  # 0 usable (the neighbours too), 1 NaN, 2 saturated (inf included)
+    kind[off : off + t.size][nan] = 1
+    kind[off : off + t.size][sat] = 2
+    names = {1: "nan", 2: "saturated"}
     flags = set()
+    missing = int(nan.sum() + sat.sum())
     if ts.size >= 2:
         dts = np.diff(ts)
         if (dts <= 0).any():
             flags.add("time")
-        pos = dts[dts > 0]
-        if max_gap is None and pos.size:
-            max_gap = gap_factor * float(np.median(pos))
-        if (max_gap is not None and pos.size and pos.max() > max_gap) or (np.abs(np.diff(ps)) > max_dtheta).any():
+        if (np.abs(np.diff(ps)) > max_dtheta).any():
             flags.add("gap")
+        pos = dts[dts > 0]
+        if pos.size:
+            med = float(np.median(pos))
+            limit = gap_factor * med if max_gap is None else max_gap
+            missing += sum(int(round(d / med)) - 1 for d in dts if d > 1.5 * med)
+            good = np.flatnonzero(kind == 0)
+            for a, b in zip(good, good[1:]):
+                if ts[b] - ts[a] > limit:
+                    inside = set(kind[a + 1 : b].tolist()) - {0}
+                    flags |= {names[k] for k in inside} if inside else {"gap"}
+            if good.size and good[-1] < ts.size - 1 and ts[-1] - ts[good[-1]] > limit:
+                flags |= {names[k] for k in set(kind[good[-1] + 1 :].tolist())}
+            if not good.size:
+                flags |= {names[k] for k in set(kind.tolist())}
+        elif (kind[off : off + t.size] > 0).all():
+            flags |= {names[k] for k in set(kind.tolist()) - {0}}
         thr = np.maximum.accumulate(ps)
         j = np.searchsorted(thr, thr + stop_dtheta, side="left") - 1
         if ((ts[j] - ts) > stop_time).any():
             flags.add("stopped")
-    if np.isnan(az).any():
-        flags.add("nan")
-    if (np.abs(az) >= full_scale).any() or (len(clip) and np.isin(az, clip).any()):
-        flags.add("saturated")
-    return flags
+    elif kind[off]:
+        flags.add(names[kind[off]])
+    return flags, missing
 
 
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -752,11 +831,14 @@ def test_window_checks_match_the_rules(n, seed, pre, post, given_gap):
     az = rng.normal(9.81, 3.0, n)
     clip = np.array([12.5]) if rng.random() < 0.5 else np.empty(0)
     for _ in range(rng.integers(0, 3)):
-        az[rng.integers(0, n)] = rng.choice([np.nan, 200.0, -200.0, 12.5])
+        i = rng.integers(0, n)
+        az[i : i + rng.integers(1, 8)] = rng.choice([np.nan, 200.0, -200.0, 12.5])  # runs of 1-7 bad samples
     t, ph = tt[1 : n + 1], th[1 : n + 1]
     args = (0.01 if given_gap else None, 5.0, 0.08, 0.01, 0.5, 16 * G, clip)
-    want = _numpy_window_flags(t, az, ph, (tt[0], th[0]) if pre else None, (tt[-1], th[-1]) if post else None, *args)
-    bits = _window_checks(t, az, ph, pre, tt[0], th[0], post, tt[-1], th[-1], math.nan if args[0] is None else args[0],
-                          *args[1:])
+    want, want_missing = _numpy_window_checks(t, az, ph, (tt[0], th[0]) if pre else None,
+                                              (tt[-1], th[-1]) if post else None, *args)
+    bits, missing = _window_checks(t, az, ph, pre, tt[0], th[0], post, tt[-1], th[-1],
+                                   math.nan if args[0] is None else args[0], *args[1:])
     names = {_F_TIME: "time", _F_GAP: "gap", _F_STOPPED: "stopped", _F_NAN: "nan", _F_SATURATED: "saturated"}
     assert {name for bit, name in names.items() if bits & bit} == want
+    assert missing == want_missing

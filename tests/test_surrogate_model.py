@@ -1,104 +1,149 @@
-"""The feature surrogate's model: Legendre fit, grid table, file format."""
+"""The feature surrogate's model: per-node Legendre fit, speed interpolation, grid evaluation, file format."""
 
 import json
 
 import numpy as np
 import pytest
 
-from slipest.features import FEATURE_NAMES
 from slipest.inverse.surrogate import (
     FORMAT_VERSION,
     FeatureSurrogate,
     InverseModelError,
+    fit_node,
     load_inverse_model,
+    node_terms,
     save_inverse_model,
 )
 
-FEATS = ("delta_a", "onset", "osc_freq")
-RANGES = [[0.0, 0.5], [500.0, 1500.0], [0.1, 0.4], [0.0, 0.35]]
+FEATS = ("rms", "onset", "osc_freq")
+LO = np.array([0.0, 500.0, 0.1, 0.0, 0.0])
+HI = np.array([0.5, 1500.0, 0.8, 0.35, 0.02])
+CENTER, HALF = (LO + HI) / 2, (HI - LO) / 2
+NODES = np.array([0.4, 0.6, 0.9])
+SCHEDULE = {0: 4, 1: 2}
 
 
-def _truth(slip, kS, phiD, dphi):
-    """Three smooth 'features' of known form (cubic in the normalised variables)."""
-    u = [(slip - 0.25) / 0.25, (kS - 1000) / 500, (phiD - 0.25) / 0.15, (dphi - 0.175) / 0.175]
+def _truth(x5, node):
+    """Three smooth 'features' of known form (within the schedule: cubic in slip/soil, linear in the noise)."""
+    u = (x5 - CENTER) / HALF
+    s = 1.0 + 0.5 * node
     return np.column_stack([
-        0.2 + 0.1 * u[0] ** 3 - 0.05 * u[1] * u[3],
-        0.5 + 0.2 * u[0] * u[2] + 0.03 * u[1] ** 2,
-        8.0 + 1.5 * u[1] - 0.4 * u[3] ** 3 + 0.2 * u[0] * u[1] * u[2],
+        s * (0.2 + 0.1 * u[:, 0] ** 3 - 0.05 * u[:, 1] * u[:, 3]) + 0.04 * u[:, 4],
+        0.5 + 0.2 * s * u[:, 0] * u[:, 2] + 0.03 * u[:, 1] ** 2,
+        8.0 + 1.5 * u[:, 1] - 0.4 * s * u[:, 3] ** 3 + 0.2 * u[:, 0] * u[:, 1] * u[:, 2] + 0.3 * u[:, 4] * u[:, 0],
     ])
 
 
-def _training(n, rng):
-    slip, kS, phiD, dphi = (rng.uniform(lo, hi, n) for lo, hi in RANGES)
-    rows = np.full((n, len(FEATURE_NAMES)), np.nan)
-    y = _truth(slip, kS, phiD, dphi)
-    for j, f in enumerate(FEATS):
-        rows[:, FEATURE_NAMES.index(f)] = y[:, j] + rng.normal(0, 1e-3, n)
-    return rows, slip, kS, phiD + dphi, phiD
+def _draw(n, rng):
+    return rng.uniform(LO, HI, (n, 5))
 
 
 @pytest.fixture(scope="module")
 def fitted():
-    rows, slip, kS, phiS, phiD = _training(3000, np.random.default_rng(3))
-    return FeatureSurrogate.fit(rows, slip, kS, phiS, phiD, features=FEATS, degree=4, ranges=RANGES)
+    rng = np.random.default_rng(3)
+    terms = node_terms(SCHEDULE)
+    coef, cov = [], []
+    for node in range(NODES.size):
+        x5 = _draw(4000, rng)
+        # residual noise with a standard deviation growing with the noise input: 1e-3 * sqrt(1 + (s / 0.01)^2)
+        sd = 1e-3 * np.sqrt(1.0 + (x5[:, 4] / 0.01) ** 2)
+        y = _truth(x5, node) + rng.normal(0, 1, (4000, 3)) * sd[:, None]
+        c, r = fit_node(x5, y, terms, CENTER, HALF)
+        coef.append(c)
+        cov.append(r)
+    ranges = np.vstack([np.column_stack([LO, HI]), [NODES[0], NODES[-1]]])
+    return FeatureSurrogate(FEATS, NODES, CENTER, HALF, ranges, 0.1, terms, np.stack(coef), np.stack(cov),
+                            {"omega": [0.45, 0.85]}, {"training": {"n_legs": 4}})
 
 
-def test_fit_recovers_a_known_polynomial_and_the_noise(fitted):
-    rng = np.random.default_rng(4)
-    slip, kS, phiD, dphi = (rng.uniform(lo, hi, 500) for lo, hi in RANGES)
-    err = fitted.mean(slip, kS, phiD + dphi, phiD) - _truth(slip, kS, phiD, dphi)
-    # noise 1e-3 on 3000 rows, 70 terms: the mean's error is about 1e-3 * sqrt(70 / 3000) = 1.5e-4 RMS
-    assert np.sqrt(np.mean(err**2)) < 3e-4
-    assert np.max(np.abs(err)) < 1.5e-3
-    assert np.allclose(np.sqrt(np.diag(fitted.R)), 1e-3, rtol=0.1)
+def _x6(x5, omega):
+    return np.column_stack([x5[:, :4], np.full(len(x5), omega), x5[:, 4]])
 
 
-def test_grid_table_equals_the_pointwise_mean(fitted):
-    nodes, ks, pd, dp = np.array([0.0, 0.2, 0.45]), np.array([600.0, 1400.0]), np.array([0.15, 0.3]), np.array([0.05, 0.3])
-    table = fitted.table(nodes, ks, pd, dp, pad_to=1)  # (cells, slip nodes, features), whitened
-    k, p, d = np.meshgrid(ks, pd, dp, indexing="ij")
-    cells = np.column_stack([k.ravel(), p.ravel(), d.ravel()])
-    for c, (kS, phiD, dphi) in enumerate(cells):
-        want = fitted.mean(nodes, kS, phiD + dphi, phiD) @ fitted.whitener()
-        assert np.allclose(table[c], want, rtol=1e-5, atol=1e-3)
+def test_a_node_recovers_a_known_polynomial_and_its_noise(fitted):
+    x5 = _draw(500, np.random.default_rng(4))
+    for node, omega in enumerate(NODES):
+        err = fitted.mean(_x6(x5, omega)) - _truth(x5, node)
+        # noise ~1.5e-3 on 4000 rows, 45 terms: the mean's error is about 1.5e-3 * sqrt(45 / 4000) = 1.6e-4 RMS
+        assert np.sqrt(np.mean(err**2)) < 4e-4
+    # the residual covariance A + s^2 B: variance 1e-6 * (1 + (s / 0.01)^2) on the diagonal
+    for s in (0.0, 0.01, 0.02):
+        assert np.allclose(np.diag(fitted.cov(0.6, s)), 1e-6 * (1 + (s / 0.01) ** 2), rtol=0.15)
 
 
-def test_file_round_trip_and_old_format_refused(fitted, tmp_path):
-    path = save_inverse_model(fitted, tmp_path / "m.json")
+def test_between_nodes_linear_in_log_speed(fitted):
+    assert fitted.node_weights(0.3) == [(0, 1.0)] and fitted.node_weights(2.0) == [(2, 1.0)]
+    omega = 0.6 * (0.9 / 0.6) ** 0.25
+    (i, wi), (j, wj) = fitted.node_weights(omega)
+    assert (i, j) == (1, 2) and np.isclose(wj, 0.25) and np.isclose(wi + wj, 1.0)
+    x5 = _draw(50, np.random.default_rng(5))
+    want = 0.75 * fitted.mean(_x6(x5, 0.6)) + 0.25 * fitted.mean(_x6(x5, 0.9))
+    assert np.allclose(fitted.mean(_x6(x5, omega)), want, rtol=1e-10, atol=1e-12)
+    assert np.allclose(fitted.cov(omega, 0.01), 0.75 * fitted.cov(0.6, 0.01) + 0.25 * fitted.cov(0.9, 0.01), rtol=1e-6)
+    assert fitted.covered_range("omega") == (0.45, 0.85) and fitted.covered_range("kS") == (500.0, 1500.0)
+
+
+def test_grid_evaluation_equals_the_pointwise_mean(fitted):
+    nodes, ks, ps, dp = np.array([0.0, 0.2, 0.45]), np.array([600.0, 1400.0]), np.array([0.3, 0.6]), np.array([0.05, 0.3])
+    omega, s = 0.7, 0.013
+    grid = fitted.mean_on_grid(nodes, ks, ps, dp, omega, s)  # (kS, phiS, dphi, slip, features)
+    assert grid.shape == (2, 2, 2, 3, 3)
+    for a, kS in enumerate(ks):
+        for b, phiS in enumerate(ps):
+            for c, dphi in enumerate(dp):
+                x = np.column_stack([nodes, np.full(3, kS), np.full(3, phiS), np.full(3, dphi), np.full(3, omega),
+                                     np.full(3, s)])
+                assert np.allclose(grid[a, b, c], fitted.mean(x), rtol=1e-9, atol=1e-9)
+
+
+def test_file_round_trip_and_other_versions_refused(fitted, tmp_path):
+    path = save_inverse_model(fitted, tmp_path / "m.npz")
     again = load_inverse_model(path)
-    x = (np.array([0.1, 0.4]), 900.0, 0.5, 0.2)
-    assert np.array_equal(again.mean(*x), fitted.mean(*x))
-    doc = json.loads(path.read_text())
-    doc["format_version"] = 1  # monomial basis: the same numbers would mean another function
-    old = tmp_path / "old.json"
-    old.write_text(json.dumps(doc))
-    with pytest.raises(InverseModelError, match=rf"format_version 1 is not supported.*reads {FORMAT_VERSION}.*train_inverse"):
+    x = _x6(_draw(5, np.random.default_rng(6)), 0.77)
+    assert np.array_equal(again.mean(x), fitted.mean(x))
+    assert again.covered == fitted.covered and again.meta == fitted.meta
+    with np.load(path) as z:
+        doc = {k: z[k] for k in z.files}
+    doc["format_version"] = np.array(2)
+    old = tmp_path / "old.npz"
+    np.savez(old, **doc)
+    with pytest.raises(InverseModelError, match=rf"old\.npz: format_version 2 is not supported.*reads {FORMAT_VERSION}.*train_inverse"):
         load_inverse_model(old)
 
 
-def test_shipped_model_is_the_current_format():
-    m = load_inverse_model()
-    assert m.degree >= 8 and m.terms.max() == m.degree
-    assert m.coef.shape == (m.terms.shape[0], len(m.features))
-
-
 def test_unreadable_or_missing_model_file_is_a_clear_error(tmp_path):
-    with pytest.raises(InverseModelError, match=r"inverse model file .*nope\.json not found"):
-        load_inverse_model(tmp_path / "nope.json")
+    with pytest.raises(InverseModelError, match=r"inverse model file .*nope\.npz not found"):
+        load_inverse_model(tmp_path / "nope.npz")
     with pytest.raises(InverseModelError, match=r"inverse model file .* cannot be read"):
         load_inverse_model(tmp_path)  # a directory
+    old_json = tmp_path / "inverse_model.json"  # the format before the speed nodes
+    old_json.write_text(json.dumps({"format_version": 2}))
+    with pytest.raises(InverseModelError, match=r"inverse_model\.json: not an inverse model file"):
+        load_inverse_model(old_json)
 
 
 @pytest.mark.parametrize("field, value, message", [
-    ("terms", [[0, 0, 0, 99]], "terms must be"),
-    ("halfwidth", [1.0, 0.0, 1.0, 1.0], "halfwidth must be"),
-    ("coef", [[1.0, "x"]], "malformed inverse model"),
-    ("center", [[0.0], [1.0, 2.0]], "malformed inverse model"),
+    ("terms", np.array([[0, 0, 0, 99]]), "terms must be"),
+    ("halfwidth", np.array([1.0, 0.0, 1.0, 1.0, 1.0]), "halfwidth must be"),
+    ("node_omegas", np.array([0.9, 0.6, 0.4]), "node_omegas must be positive and increasing"),
+    ("coef", np.zeros((3, 2, 3)), "shapes do not agree"),
+    ("features", np.array(["rms", "no_such_feature", "onset"]), "unknown feature"),
+    ("meta", np.array("{not json"), "malformed inverse model"),
 ])
 def test_malformed_model_file_names_the_file_and_the_fault(fitted, tmp_path, field, value, message):
-    doc = fitted.to_dict()
+    fitted.save(tmp_path / "good.npz")
+    with np.load(tmp_path / "good.npz") as z:
+        doc = {k: z[k] for k in z.files}
     doc[field] = value
-    path = tmp_path / "broken.json"
-    path.write_text(json.dumps(doc))
-    with pytest.raises(InverseModelError, match=rf"broken\.json: .*{message}"):
+    path = tmp_path / "broken.npz"
+    np.savez(path, **doc)
+    with pytest.raises(InverseModelError, match=rf"broken\.npz: .*{message}"):
         load_inverse_model(path)
+
+
+def test_shipped_model_is_the_current_format_and_covers_the_envelope():
+    m = load_inverse_model()
+    lo, hi = m.covered_range("omega")
+    assert m.node_omegas[0] <= lo and hi <= m.node_omegas[-1] and lo <= 0.3 and hi >= 1.2
+    assert m.coef.shape == (m.node_omegas.size, m.terms.shape[0], len(m.features))
+    assert m.n_legs == 4 and np.isfinite(m.meta["fit_level"]) and m.meta["fit_level"] > 0

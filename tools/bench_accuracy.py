@@ -1,197 +1,221 @@
 #!/usr/bin/env python3
-"""Accuracy benchmark: slip and dphi errors of the estimators on simulated runs where the soil changes.
+"""Accuracy benchmark: slip and dphi errors of the estimator across the rover's operating envelope.
 
 Each run drives ``--soils`` soils one after the other, ``--cycles-per-soil``
-leg cycles each; the soils are drawn uniformly over the spec's ranges
-(kS 500-1500 N/m, phiD 0.1-0.4 rad, dphi 0-0.35 rad) and redrawn when
-within 2 % of the range of a calibration-grid point in every coordinate
-(so none is on the calibration grid); slip is piecewise constant, redrawn
-uniformly in 0-0.5 every 2-5 cycles; the IMU stream (``Scenario`` +
-``iter_stream``) has 0.01 g noise at 1 kHz. Compared, per cycle:
+leg cycles each, through the whole chain a rover uses (``Scenario`` ->
+``iter_stream`` -> :class:`slipest.online.SlipEstimator`: segmenter, noise
+estimate, features, recursive soil filter), **soil unknown**, never told of
+changes. Draws (all uniform):
 
-* ``default``: :class:`slipest.online.SlipEstimator` end to end (segmenter,
-  features, recursive soil filter), **soil unknown**, never told of changes;
-* ``default-known``: the same inverse with the true soil given (one cycle at a time);
-* ``eq515-known``: thesis Eq. 5.15 with the true ``kS`` and ``dphi``.
+* soils over the whole promised domain: kS 500-1500 N/m, phiD 0.10-0.80 rad
+  and dphi 0-0.35 rad with phiS = phiD + dphi <= 0.80 rad;
+* slip redrawn in 0-0.5 every 2-5 cycles;
+* leg speed 0.35-1.1 rad/s: one per run (``steady`` runs) or redrawn every
+  3-6 cycles (``changing`` runs, every other run);
+* the IMU of each run: one of the ``--conditions`` (rate [Hz] : noise [g]),
+  every condition getting the same runs.
 
-Reported: slip RMSE, dphi RMSE and the share of truths inside the 95 %
-intervals (``+-1.96 std``), over the cycles that come after the filter
-has seen at least N cycles of the current soil (N = 1, 5, 10, 20; "N = 10"
-is the target's "from the 10th cycle after the soil last changed"), and at
-exactly N. Never tune anything on this benchmark's seed (default 2024):
-development used other seeds.
+Reported per condition, and per leg-speed band and soil range (``old
+range``: phiD <= 0.4 rad, what the single-speed model covered): slip RMSE,
+bias and the share of truths inside the 95 % intervals (``+-1.96 std``),
+dphi RMSE and coverage, over the cycles from the ``--from-cycle``-th (10th)
+after the soil last changed; and the share of all cycles that were
+estimated (with why the others were not). Also, per condition, the same
+inverse with the true soil given (one cycle at a time). Never tune anything
+on this benchmark's official seed (2024): development used seeds 11 and 7.
 
-    python tools/bench_accuracy.py                 # 12 runs x 4 soils x 25 cycles, ~15 s
-    python tools/bench_accuracy.py --runs 2 --seed 7
-    python tools/bench_accuracy.py --seed 11 --grid 15,13,11   # a development seed, another soil grid
+    python tools/bench_accuracy.py                    # 12 runs x 3 conditions x 4 soils x 25 cycles, ~4 min
+    python tools/bench_accuracy.py --runs 4 --seed 11 --conditions 1000:0.01
+    python tools/bench_accuracy.py --conditions 200:0.01,2000:0.01,500:0.02 --json out.json
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 
 import numpy as np
 from tqdm import tqdm
 
-from slipest.features import INDEX, cycle_features
-from slipest.inverse.eq515 import Eq515Inverse
-from slipest.inverse.simdata import RANGES
-from slipest.inverse.surrogate import SoilGrid, SurrogateInverse, load_inverse_model
+from slipest.inverse.feature_inverse import FeatureInverse
+from slipest.inverse.surrogate import load_inverse_model
 from slipest.model.params import StickSlipParams
 from slipest.model.scenario import Scenario
-from slipest.model.stream import iter_stream
-from slipest.online import SlipEstimator
-from slipest.segmentation import CycleSegmenter
+from slipest.model.stream import iter_stream, simulate_stream
+from slipest.online import ESTIMATED, SlipEstimator
 
-CAL_GRID = {"kS": [500, 750, 1000, 1250, 1500], "phiD": [0.1, 0.2, 0.3, 0.4], "dphi": [0.0, 0.0875, 0.175, 0.2625, 0.35]}
-NS = (1, 5, 10, 20)
-
-
-def near_cal_grid(kS, phiD, dphi, tol=0.02) -> bool:
-    """True when every coordinate is within ``tol`` of its range from a calibration-grid level."""
-    out = True
-    for name, v in (("kS", kS), ("phiD", phiD), ("dphi", dphi)):
-        lo, hi = RANGES[name]
-        out &= min(abs(v - g) for g in CAL_GRID[name]) <= tol * (hi - lo)
-    return bool(out)
+DOMAIN = {"kS": (500.0, 1500.0), "phiD": (0.10, 0.80), "dphi": (0.0, 0.35), "phiS_max": 0.80, "slip": (0.0, 0.5),
+          "omega": (0.35, 1.1)}
+SPEED_BANDS = ((0.35, 0.55), (0.55, 0.8), (0.8, 1.1))
+OLD_PHID_MAX = 0.4
 
 
-def draw_run(rng, n_soils, per_soil):
-    soils = []
-    while len(soils) < n_soils:
-        kS = rng.uniform(*RANGES["kS"])
-        phiD = rng.uniform(*RANGES["phiD"])
-        dphi = rng.uniform(*RANGES["dphi"])
-        if not near_cal_grid(kS, phiD, dphi):
-            soils.append((kS, phiD + dphi, phiD))
-    n = n_soils * per_soil
-    slip = np.empty(n)
+def draw_soil(rng) -> tuple[float, float, float]:
+    """kS [N/m], phiS, phiD [rad] uniform over the domain."""
+    while True:
+        phiD = rng.uniform(*DOMAIN["phiD"])
+        dphi = rng.uniform(*DOMAIN["dphi"])
+        if phiD + dphi <= DOMAIN["phiS_max"]:
+            return rng.uniform(*DOMAIN["kS"]), phiD + dphi, phiD
+
+
+def piecewise(rng, n: int, lo_len: int, hi_len: int, draw) -> np.ndarray:
+    out = np.empty(n)
     j = 0
     while j < n:
-        k = int(rng.integers(2, 6))
-        slip[j : j + k] = rng.uniform(*RANGES["slip"])
+        k = int(rng.integers(lo_len, hi_len + 1))
+        out[j : j + k] = draw()
         j += k
-    soil = np.repeat(np.array(soils), per_soil, axis=0)
-    since = np.tile(np.arange(1, per_soil + 1), n_soils)
-    return slip, soil, since
-
-
-def run_one(seed, n_soils, per_soil, noise, rate, eq, surro, est_opts=None, model=None):
-    rng = np.random.default_rng(seed)
-    slip, soil, since = draw_run(rng, n_soils, per_soil)
-    sc = Scenario.per_cycle(StickSlipParams(), dict(noise_g=noise, rate=rate, seed=int(rng.integers(2**31))),
-                            slip=slip, kS=soil[:, 0], phiS=soil[:, 1], phiD=soil[:, 2])
-    n = slip.size
-    rows = {k: np.full(n, np.nan) for k in ("slip_d", "sd_d", "dphi_d", "dsd_d", "slip_k", "sd_k", "slip_e", "sd_e")}
-    est = SlipEstimator(n_legs=sc.n_legs, estimator=est_opts, model=model)
-    seg = CycleSegmenter(sc.n_legs)
-    for chunk in iter_stream(sc):
-        for e in est.push_many(chunk.t, chunk.az, chunk.theta):
-            if e.ok and e.cycle < n:
-                rows["slip_d"][e.cycle], rows["sd_d"][e.cycle] = e.slip, e.slip_std
-                rows["dphi_d"][e.cycle], rows["dsd_d"][e.cycle] = e.dphi, e.dphi_std
-        for cyc in seg.push_many(chunk.t, chunk.az, chunk.theta):
-            k = cyc.k
-            if not cyc.ok or k >= n:
-                continue
-            f = cycle_features(cyc.theta_phase, cyc.az, cyc.t, n_legs=sc.n_legs)
-            kS, phiS, phiD = soil[k]
-            rows["slip_k"][k], rows["sd_k"][k] = surro.slip_known_soil(f, kS, phiS, phiD)
-            rows["slip_e"][k] = float(eq.slip_from_da(f[INDEX["delta_a"]], phiS - phiD, kS))
-            rows["sd_e"][k] = eq.slip_std
-    rows.update(slip=slip, dphi=soil[:, 1] - soil[:, 2], since=since)
-    return rows
-
-
-def summarise(all_rows):
-    cat = {k: np.concatenate([r[k] for r in all_rows]) for k in all_rows[0]}
-    out = {}
-    for label, key, sd, truth in (
-        ("default (soil unknown) slip", "slip_d", "sd_d", "slip"),
-        ("default (soil unknown) dphi", "dphi_d", "dsd_d", "dphi"),
-        ("default-known (soil known) slip", "slip_k", "sd_k", "slip"),
-        ("eq515-known (soil known) slip", "slip_e", "sd_e", "slip"),
-    ):
-        res = {}
-        for mode in ("from", "at"):
-            for n in NS:
-                sel = (cat["since"] >= n) if mode == "from" else (cat["since"] == n)
-                sel &= np.isfinite(cat[key])
-                e = cat[key][sel] - cat[truth][sel]
-                if e.size == 0:
-                    continue
-                res[f"{mode}_{n}"] = {
-                    "n": int(e.size),
-                    "rmse": float(np.sqrt(np.mean(e**2))),
-                    "bias": float(np.mean(e)),
-                    "coverage95": float(np.mean(np.abs(e) <= 1.96 * cat[sd][sel])),
-                }
-        res["not_estimated"] = int(np.sum(~np.isfinite(cat[key])))
-        out[label] = res
     return out
 
 
-def grid_levels(text: str) -> tuple[int, int, int]:
-    """``--grid K,P,D``: three level counts, each at least 2."""
-    try:
-        levels = tuple(int(x) for x in text.split(","))
-    except ValueError:
-        levels = ()
-    if len(levels) != 3 or min(levels) < 2:
-        raise argparse.ArgumentTypeError(f"expected three level counts >= 2 like 11,10,31, got {text!r}")
-    return levels
+def draw_run(rng, n_soils: int, per_soil: int, changing: bool) -> dict:
+    soils = np.repeat(np.array([draw_soil(rng) for _ in range(n_soils)]), per_soil, axis=0)
+    n = n_soils * per_soil
+    slip = piecewise(rng, n, 2, 5, lambda: rng.uniform(*DOMAIN["slip"]))
+    if changing:
+        omega = piecewise(rng, n, 3, 6, lambda: rng.uniform(*DOMAIN["omega"]))
+    else:
+        omega = np.full(n, rng.uniform(*DOMAIN["omega"]))
+    since = np.tile(np.arange(1, per_soil + 1), n_soils)
+    return {"slip": slip, "kS": soils[:, 0], "phiS": soils[:, 1], "phiD": soils[:, 2], "omega": omega, "since": since,
+            "seed": int(rng.integers(2**31))}
+
+
+def run_one(run: dict, rate: float, noise: float, inverse: FeatureInverse, model, inject=None) -> dict:
+    """Estimates of one run (soil unknown) and the same cycles' soil-known inversions; ``inject(t, az, theta,
+    cycle)``, when given, returns the stream with faults in it (``tools/bench_faults.py``)."""
+    n = run["slip"].size
+    sc = Scenario.per_cycle(StickSlipParams(), dict(noise_g=noise, rate=rate, seed=run["seed"]),
+                            **{k: run[k] for k in ("slip", "kS", "phiS", "phiD", "omega")})
+    rows = {k: np.full(n, np.nan) for k in ("slip", "slip_std", "dphi", "dphi_std", "slip_known", "slip_known_std")}
+    quality = np.full(n, "missing", dtype=object)
+    repaired = np.zeros(n, int)
+
+    def on_estimate(e):
+        k = e.cycle
+        if not 0 <= k < n:
+            return
+        quality[k] = e.quality
+        repaired[k] = e.n_repaired
+        if e.ok:
+            rows["slip"][k], rows["slip_std"][k] = e.slip, e.slip_std
+            rows["dphi"][k], rows["dphi_std"][k] = e.dphi, e.dphi_std
+            # the same cycle's features (the callback runs as each estimate is made)
+            rows["slip_known"][k], rows["slip_known_std"][k] = inverse.slip_known_soil(
+                est.last_features, run["kS"][k], run["phiS"][k], run["phiD"][k])
+
+    est = SlipEstimator(n_legs=sc.n_legs, model=model, on_estimate=on_estimate)
+    if inject is None:
+        chunks = ((c.t, c.az, c.theta) for c in iter_stream(sc))
+    else:
+        s = simulate_stream(sc)
+        chunks = [inject(s.t, s.az, s.theta, s.cycle)]
+    for _ in est.iter_estimates(chunks):
+        pass
+    rows.update(quality=quality, true_slip=run["slip"], true_dphi=run["phiS"] - run["phiD"], omega=run["omega"],
+                phiD=run["phiD"], since=run["since"], noise=est.noise_estimate, repaired=repaired)
+    return rows
+
+
+def figures(rows: list[dict], sel_fn, from_cycle: int) -> dict:
+    cat = {k: np.concatenate([np.atleast_1d(r[k]) for r in rows]) for k in rows[0] if k != "noise"}
+    sel_all = sel_fn(cat)
+    out = {"cycles": int(sel_all.sum())}
+    if not out["cycles"]:
+        return out
+    q = cat["quality"][sel_all]
+    est = np.isin(q, ESTIMATED)
+    out["estimated"] = float(np.mean(est))
+    out["not_estimated"] = {str(k): int(v) for k, v in zip(*np.unique(q[~est], return_counts=True))}
+    sel = sel_all & (cat["since"] >= from_cycle) & np.isin(cat["quality"], ESTIMATED)
+    out["scored"] = int(sel.sum())
+    for name, est, std, truth in (("slip", "slip", "slip_std", "true_slip"), ("dphi", "dphi", "dphi_std", "true_dphi"),
+                                  ("slip_soil_known", "slip_known", "slip_known_std", "true_slip")):
+        e = cat[est][sel] - cat[truth][sel]
+        ok = np.isfinite(e)
+        if ok.sum():
+            out[name] = {"rmse": float(np.sqrt(np.mean(e[ok] ** 2))), "bias": float(np.mean(e[ok])),
+                         "coverage95": float(np.mean(np.abs(e[ok]) <= 1.96 * cat[std][sel][ok]))}
+    return out
+
+
+def print_table(title: str, groups: dict) -> None:
+    print(title)
+    print(f"  {'group':26s} {'cycles':>6s} {'estim.':>6s} | {'slip RMSE':>9s} {'bias':>7s} {'cov95':>5s} | "
+          f"{'dphi RMSE':>9s} {'cov95':>5s} | {'soil known':>10s}")
+    for name, f in groups.items():
+        if not f.get("cycles"):
+            continue
+        s, d, k = f.get("slip", {}), f.get("dphi", {}), f.get("slip_soil_known", {})
+        why = ", ".join(f"{q} {c}" for q, c in f["not_estimated"].items())
+        print(f"  {name:26s} {f['cycles']:6d} {f['estimated']:6.3f} | {s.get('rmse', math.nan):9.4f} "
+              f"{s.get('bias', math.nan):+7.4f} {s.get('coverage95', math.nan):5.3f} | {d.get('rmse', math.nan):9.4f} "
+              f"{d.get('coverage95', math.nan):5.3f} | {k.get('rmse', math.nan):10.4f}" + (f"   ({why})" if why else ""))
+
+
+def conditions(text: str) -> list[tuple[float, float]]:
+    """``RATE:NOISE,...``: IMU rates [Hz] and noise standard deviations [g]."""
+    out = []
+    for item in text.split(","):
+        try:
+            rate, noise = (float(v) for v in item.split(":"))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected RATE:NOISE like 1000:0.01, got {item!r}") from None
+        if not (rate > 0 and noise >= 0):
+            raise argparse.ArgumentTypeError(f"rate must be > 0 Hz and noise >= 0 g, got {item!r}")
+        out.append((rate, noise))
+    return out
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--runs", type=int, default=12)
+    ap.add_argument("--runs", type=int, default=12, help="runs per condition (half steady, half changing speed)")
     ap.add_argument("--soils", type=int, default=4, help="soils per run (the soil changes between them)")
     ap.add_argument("--cycles-per-soil", type=int, default=25)
-    ap.add_argument("--noise", type=float, default=0.01, help="IMU noise [g]")
-    ap.add_argument("--rate", type=float, default=1000.0, help="IMU rate [Hz]")
+    ap.add_argument("--conditions", type=conditions, default=conditions("1000:0.01,250:0.01,1000:0.025"),
+                    help="IMU rate [Hz] : noise [g] of the runs, comma-separated (default 1000:0.01,250:0.01,1000:0.025)")
+    ap.add_argument("--from-cycle", type=int, default=10, help="score from this cycle after a soil change (default 10)")
     ap.add_argument("--seed", type=int, default=2024)
+    ap.add_argument("--model", help="inverse model file (default: the shipped one)")
     ap.add_argument("--json", help="also write the figures to this JSON file")
-    ap.add_argument("--model", help="inverse model JSON (default: the shipped slipest/data/inverse_model.json)")
-    ap.add_argument("--hazard", type=float, help="estimator option (default: the estimator's)")
-    ap.add_argument("--soil-temper", type=float, help="estimator option (default: the estimator's)")
-    ap.add_argument("--slip-temper", type=float, help="estimator option (default: the estimator's)")
-    ap.add_argument("--forget", type=float, help="estimator option (default: the estimator's)")
-    ap.add_argument("--n-dims", type=int, help="estimator option (default: the estimator's)")
-    ap.add_argument("--grid", metavar="K,P,D", type=grid_levels,
-                    help="soil grid: numbers of kS, phiD and dphi levels over the spec's ranges, each >= 2 "
-                    "(default: SoilGrid.default(), 11,10,31)")
     args = ap.parse_args(argv)
-    eq = Eq515Inverse.from_calibration()
-    model = load_inverse_model(args.model) if args.model else None
-    surro = SurrogateInverse(model)
+    model = load_inverse_model(args.model)
+    inverse = FeatureInverse(model)
     t0 = time.time()
-    opts = {k: v for k, v in (("hazard", args.hazard), ("soil_temper", args.soil_temper),
-                              ("slip_temper", args.slip_temper), ("forget", args.forget), ("n_dims", args.n_dims))
-            if v is not None}
-    if args.grid:
-        k, p, d = args.grid
-        opts["grid"] = SoilGrid(np.linspace(*RANGES["kS"], k), np.linspace(*RANGES["phiD"], p), np.linspace(*RANGES["dphi"], d))
-    rows = [run_one(args.seed * 1000 + r, args.soils, args.cycles_per_soil, args.noise, args.rate, eq, surro, opts, model)
-            for r in tqdm(range(args.runs), desc="runs", file=sys.stderr)]
-    out = summarise(rows)
-    print(f"{args.runs} runs x {args.soils} soils x {args.cycles_per_soil} cycles, noise {args.noise} g at "
-          f"{args.rate:g} Hz, seed {args.seed}, {time.time() - t0:.0f} s")
-    print(f"{'':34s} {'N':>3s} {'cycles':>6s} {'RMSE':>7s} {'bias':>7s} {'cov95':>6s}   (from the N-th cycle on a soil)")
-    for label, res in out.items():
-        for n in NS:
-            r = res.get(f"from_{n}")
-            if r:
-                print(f"{label:34s} {n:3d} {r['n']:6d} {r['rmse']:7.4f} {r['bias']:+7.4f} {r['coverage95']:6.3f}")
-    print("at exactly the N-th cycle on a soil:")
-    for label, res in out.items():
-        print(f"  {label:32s} " + "  ".join(
-            f"N={n}: {res[f'at_{n}']['rmse']:.4f} ({res[f'at_{n}']['coverage95']:.2f})" for n in NS if f"at_{n}" in res))
+    rng = np.random.default_rng(args.seed)
+    runs = [draw_run(rng, args.soils, args.cycles_per_soil, changing=bool(r % 2)) for r in range(args.runs)]
+    results = {}
+    with tqdm(total=len(runs) * len(args.conditions), desc="runs", file=sys.stderr) as bar:
+        for rate, noise in args.conditions:
+            rows = []
+            for run in runs:
+                rows.append(run_one(run, rate, noise, inverse, model))
+                bar.update(1)
+            name = f"{rate:g} Hz, {noise:g} g"
+            groups = {"all": figures(rows, lambda c: np.ones(c["since"].size, bool), args.from_cycle)}
+            for lo, hi in SPEED_BANDS:
+                groups[f"speed {lo:g}-{hi:g} rad/s"] = figures(
+                    rows, lambda c, lo=lo, hi=hi: (c["omega"] >= lo) & (c["omega"] < hi), args.from_cycle)
+            groups["steady-speed runs"] = figures(rows[0::2], lambda c: np.ones(c["since"].size, bool), args.from_cycle)
+            groups["changing-speed runs"] = figures(rows[1::2], lambda c: np.ones(c["since"].size, bool), args.from_cycle)
+            groups[f"soils phiD <= {OLD_PHID_MAX} (old range)"] = figures(
+                rows, lambda c: c["phiD"] <= OLD_PHID_MAX, args.from_cycle)
+            groups[f"soils phiD > {OLD_PHID_MAX}"] = figures(rows, lambda c: c["phiD"] > OLD_PHID_MAX, args.from_cycle)
+            noise_est = [r["noise"] for r in rows]
+            results[name] = {"groups": groups, "noise_estimated_g": [float(np.nanmin(noise_est)),
+                                                                     float(np.nanmax(noise_est))]}
+    print(f"{args.runs} runs x {args.soils} soils x {args.cycles_per_soil} cycles per condition, seed {args.seed}, "
+          f"scored from the {args.from_cycle}th cycle on a soil; {time.time() - t0:.0f} s")
+    for name, res in results.items():
+        lo, hi = res["noise_estimated_g"]
+        print_table(f"\n{name} (noise estimated from the data: {lo:.4f}-{hi:.4f} g)", res["groups"])
     if args.json:
         with open(args.json, "w") as fh:
-            json.dump({"args": vars(args), "results": out}, fh, indent=1)
+            json.dump({"args": {k: v for k, v in vars(args).items()}, "results": results}, fh, indent=1, default=str)
     return 0
 
 

@@ -317,7 +317,7 @@ def run_one(name, link, duration, tmp, corrupt_rate=0.0, seed=1):
     counted = rx.live.counters().get("wheel0", {}).get("frames_lost", 0)
     corrupted_delivered = int((delivered & (status == CORRUPTED)).sum())
     # estimates
-    ok = [(e, ready) for e, ready in rx.estimates if e.quality == "ok" and 0 <= e.cycle]
+    ok = [(e, ready) for e, ready in rx.estimates if e.ok and 0 <= e.cycle]
     windows_bad = 0
     close_lat = []
     close_parts = []  # CAN: (total, closing sample sent -> estimate ready, ready -> server, server -> listener) [s]

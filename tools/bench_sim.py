@@ -4,7 +4,7 @@
 In one run:
 
 1. accuracy: ``Da`` from (a) ``simulate_stance``, (b) ``simulate_batch`` and
-   (c) the ``solve_ivp`` implementation below, on test cases (the spec's
+   (c) the ``solve_ivp`` implementation below, on test cases (docs/model.md's
    Fig. 5.5 reference cases, random ones and two with a contact loss), against a converged
    reference, the kernel at dt = 2.5e-5 s; all must agree within 0.5%. The
    ``solve_ivp`` model at a very tight tolerance is also compared with the
@@ -15,7 +15,7 @@ In one run:
    ``simulate_stance`` per call (after a warm-up call; the JIT compile time
    is measured separately, cold, in a subprocess with an empty numba cache),
    ``simulate_batch`` on a few thousand random parameter sets within the
-   spec's ranges, and ``solve_ivp`` on a handful of cycles under a time
+   docs/model.md's ranges, and ``solve_ivp`` on a handful of cycles under a time
    budget; ratios batch/solve_ivp and single/solve_ivp (target: batch >= 100x).
 
 The ``solve_ivp`` model is written the way a user would: state
@@ -49,7 +49,7 @@ DT = 1e-4  # default step of the kernel [s]
 DT_REF = 2.5e-5  # converged reference step [s]
 TOL = 0.005  # agreement required (relative)
 
-#: Fig. 5.5 reference cases (spec section 4): label, parameter changes.
+#: Fig. 5.5 reference cases (docs/model.md section 4): label, parameter changes.
 REFERENCE_CASES = [
     ("i=0.50", dict(slip=0.5)),
     ("i=0.25", dict(slip=0.25)),
@@ -63,7 +63,7 @@ REFERENCE_CASES = [
 
 
 def random_params(n: int, seed: int) -> list[StickSlipParams]:
-    """Random parameter sets within the spec's ranges: slip 0-0.5, kS 500-1500 N/m,
+    """Random parameter sets within docs/model.md's ranges: slip 0-0.5, kS 500-1500 N/m,
     phiD 0.1-0.4 rad, dphi 0-0.35 rad."""
     rng = np.random.default_rng(seed)
     phid = rng.uniform(0.1, 0.4, n)
@@ -86,7 +86,7 @@ class IvpFailure(RuntimeError):
 
 def solve_ivp_stance(p: StickSlipParams, rtol: float = 1e-7, atol: float = 1e-10, method: str = "RK45",
                      sample_dt: float = 1e-4, max_segments: int = 20000) -> dict:
-    """One propulsive half-stance of the spec's model with ``solve_ivp`` and event functions.
+    """One propulsive half-stance of the model (docs/model.md section 3) with ``solve_ivp`` and event functions.
 
     State ``y = [zH, vzH, xH, xC, vC]`` [m, m/s]; leg angle ``theta = omega t``.
     ``Da`` [g] is max - min of the hub's gravity-free vertical acceleration,

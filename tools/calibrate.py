@@ -164,7 +164,7 @@ def report(args, grid, n_total, n_fail, fail_lines, table, eqfit, cands, chosen,
     lv = grid["levels"]
     L.append("slipest calibration sweep (thesis Eq. 5.15 and forward model)")
     L.append("=" * 78)
-    L.append(f"model: project default (spec section 3), kappa = {args.kappa:g}, dt = {args.dt:g} s")
+    L.append(f"model: project default (docs/model.md section 3), kappa = {args.kappa:g}, dt = {args.dt:g} s")
     L.append(
         f"grid : slip {np.array2string(lv['slip'], precision=3, separator=', ')}\n"
         f"       kS   {np.array2string(lv['kS'], precision=0, separator=', ')} N/m\n"
@@ -192,12 +192,12 @@ def report(args, grid, n_total, n_fail, fail_lines, table, eqfit, cands, chosen,
         )
     r2 = eqfit.r2[np.isfinite(eqfit.r2)]
     L.append(f"   per-soil R^2: mean {r2.mean():.3f}, median {np.median(r2):.3f}, min {r2.min():.3f}, max {r2.max():.3f}"
-             f"   [spec sec. 5: mean ~0.79, median 0.87; thesis: average GoF 0.84]")
+             f"   [docs/model.md sec. 5: mean ~0.79, median 0.87; thesis: average GoF 0.84]")
     dps = eqfit.dphi
     by = "   mean R^2 by dphi: " + ", ".join(
         f"{d:.4f}: {np.nanmean(eqfit.r2[np.isclose(dps, d)]):.3f}" for d in np.unique(np.round(dps, 6))
     )
-    L.append(by + "   [spec: ~0.98 at 0, 0.6-0.75 at 0.175-0.35]")
+    L.append(by + "   [docs/model.md: ~0.98 at 0, 0.6-0.75 at 0.175-0.35]")
     mono = 0
     for s in range(soils.shape[0]):
         m = np.isclose(table["kS"], soils[s, 0]) & np.isclose(table["phiS"], soils[s, 1]) & np.isclose(table["phiD"], soils[s, 2])
@@ -207,15 +207,15 @@ def report(args, grid, n_total, n_fail, fail_lines, table, eqfit, cands, chosen,
     L.append("")
     L.append("2. Eq. 5.15 second-level laws (one point per soil, unweighted)")
     L.append(f"   bIV = amu + bmu * dphi            amu = {eqfit.amu:+.4f} 1/g, bmu = {eqfit.bmu:+.4f} 1/(g rad)"
-             f"        R^2 = {eqfit.r2_slope_law:.3f}   [spec: ~0.07]")
+             f"        R^2 = {eqfit.r2_slope_law:.3f}   [docs/model.md: ~0.07]")
     L.append(f"   aIV = cI + cmu * dphi + cK * kS   cI = {eqfit.cI:+.4f}, cmu = {eqfit.cmu:+.4f} 1/rad, "
-             f"cK = {eqfit.cK:+.3e} m/N   R^2 = {eqfit.r2_intercept_plane:.3f}   [spec: ~0.15]")
+             f"cK = {eqfit.cK:+.3e} m/N   R^2 = {eqfit.r2_intercept_plane:.3f}   [docs/model.md: ~0.15]")
     L.append("   full Eq. 5.15 predicting slip from (Da, dphi, kS):")
     L.append(f"     over the sweep: R^2 = {eqfit.r2_end_to_end:.3f}, RMSE = {eqfit.rmse_end_to_end:.4f}   "
-             f"[spec: 'barely better than the mean'; slip std over the sweep = {np.std(table['slip']):.4f}]")
+             f"[docs/model.md: 'barely better than the mean'; slip std over the sweep = {np.std(table['slip']):.4f}]")
     L.append(f"     on validation : R^2 = {eq_val['r2']:.3f}, RMSE = {eq_val['rmse']:.4f}")
     L.append(f"   per-soil lines with the soil's own aIV, bIV (soil known, in-sample): RMSE = "
-             f"{eqfit.rmse_lines_soil_known:.4f}   [spec: 0.072]")
+             f"{eqfit.rmse_lines_soil_known:.4f}   [docs/model.md: 0.072]")
     L.append("")
     L.append("3. Forward calibration  Da = f(i, soil), inverted for slip with the soil known")
     first = next(c for c in cands if "alpha_plane" in c.info)
@@ -225,7 +225,7 @@ def report(args, grid, n_total, n_fail, fail_lines, table, eqfit, cands, chosen,
         if "alpha_plane" in c.info:
             ap, bp = c.info["alpha_plane"], c.info["beta_plane"]
             terms = lambda p: " ".join(f"{v:+.4g}*{k}" if k != "const" else f"{v:+.4f}" for k, v in p.items())
-            spec = "   [spec: alpha plane ~0.73]" if "phiS" not in ap else "   [spec: alpha plane ~0.82 with phiS]"
+            spec = "   [docs/model.md: alpha plane ~0.73]" if "phiS" not in ap else "   [docs/model.md: alpha plane ~0.82 with phiS]"
             L.append(f"   {c.model.name}:")
             L.append(f"     alpha = {terms(ap)}   R^2 = {c.info['r2_alpha']:.3f}{spec}")
             L.append(f"     beta  = {terms(bp)}   R^2 = {c.info['r2_beta']:.3f}")

@@ -41,7 +41,7 @@ from slipest.calibration import load_calibration
 from slipest.inverse.surrogate import load_inverse_model
 from slipest.io.can_messages import CanDecoder
 files = resources.files("slipest")
-for name in ("py.typed", "data/calibration.json", "data/inverse_model.json", "io/data/slipest.dbc"):
+for name in ("py.typed", "data/calibration.json", "data/inverse_model.npz", "io/data/slipest.dbc"):
     assert files.joinpath(name).is_file(), f"{name} is not installed"
 load_calibration(); load_inverse_model(); CanDecoder()
 meta = md.metadata("slipest")

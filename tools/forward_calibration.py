@@ -1,7 +1,7 @@
 """The forward calibration study: ``Da`` [g] as a function of slip and soil, fitted and inverted.
 
 Offline research code used by ``tools/calibrate.py`` (and its tests), not
-by the estimator: the spec (section 5) recommends calibrating forward,
+by the estimator: docs/model.md (section 5) recommends calibrating forward,
 ``Da = alpha + beta * i`` per soil with ``alpha``, ``beta`` surfaces in the
 soil, then inverting, and this module fits and compares such candidates on a
 sweep table (the arrays of :mod:`slipest.calibration`): in-sample,
@@ -220,7 +220,7 @@ def fit_forward_surfaces(
     """Two-stage forward fit: per-soil lines ``Da = alpha + beta i``, then ``alpha`` and
     ``beta`` as polynomial surfaces of total ``degree`` in (dphi, kS[, phiS]).
 
-    ``degree = 1`` gives the spec's planes. Returns the model and a dict
+    ``degree = 1`` gives the planes of docs/model.md section 5. Returns the model and a dict
     with ``r2_alpha``, ``r2_beta`` (surface fits over soils), the per-soil
     line R^2 figures and ``identifiable`` (False when the sweep's levels
     cannot determine every coefficient: rank-deficient design, e.g. a cubic

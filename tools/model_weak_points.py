@@ -2,8 +2,8 @@
 """Measure the known weak points of the stick-slip model that docs/model.md states.
 
 On ``--n`` stances drawn uniformly over the project's ranges (slip 0-0.5,
-kS 500-1500 N/m, phiD 0.1-0.4 rad, dphi 0-0.35 rad:
-``slipest.inverse.simdata.RANGES``), prints:
+kS 500-1500 N/m, phiD 0.1-0.4 rad, dphi 0-0.35 rad: ``RANGES``, the ranges
+the model was first explored over), prints:
 
 * how many stances lose contact at least once (the re-planting rule is
   used), on the draws and on the shipped calibration's grid;
@@ -27,9 +27,11 @@ import math
 import numpy as np
 
 from slipest.calibration import load_calibration
-from slipest.inverse.simdata import RANGES
 from slipest.model.params import StickSlipParams
 from slipest.model.stance import DEFAULT_DT, simulate_batch, status_text
+
+#: The ranges drawn [SI]: slip, kS [N/m], phiD and dphi [rad].
+RANGES = {"slip": (0.0, 0.5), "kS": (500.0, 1500.0), "phiD": (0.1, 0.4), "dphi": (0.0, 0.35)}
 
 #: Fig. 5.5 cases (docs/model.md section 4): label, changes from the defaults.
 FIG55 = [("i=0.50", dict(slip=0.5)), ("i=0.25", dict(slip=0.25)), ("i=0.125", dict(slip=0.125)),

@@ -8,7 +8,7 @@ serial``'s PORT.  A rover's service file might read::
     port = "/dev/ttyUSB0"
     legs = 4
     wheel = [0, 1]                       # a repeatable option takes a list
-    model = "inverse_model.json"         # paths are relative to this file's directory
+    model = "inverse_model.npz"         # paths are relative to this file's directory
     kS = 1000.0                          # the known soil (kS, phiS, phiD, dphi) [N/m, rad]
     record = "/var/lib/slipest/run.csv"
     log-level = "INFO"

@@ -146,7 +146,7 @@ class _Display:
             self._stretch = stretch
             print(f"      -- stretch {stretch + 1}: {_STRETCHES[stretch]} --", file=self.out, flush=True)
         t = (k + 1) * self.period  # scenario time at the end of the cycle [s]
-        if est.quality != "ok" or truth is None:
+        if not est.ok or truth is None:
             self.flagged[est.quality] = self.flagged.get(est.quality, 0) + 1
             print(f"{k:>5} {t:7.1f}  {'not estimated':>15} {'':>6}   {'':>20} {'':>6}  {est.quality}",
                   file=self.out, flush=True)
@@ -223,9 +223,7 @@ def run(args: argparse.Namespace) -> int:
     scenario = Scenario.from_dict(doc)
     period = 2 * math.pi / (scenario.n_legs * scenario.omega)
     n_cycles = len(scenario.cycles) if args.cycles is None else max(1, min(args.cycles, len(scenario.cycles)))
-    duration = n_cycles * period
-    if n_cycles < len(scenario.cycles):
-        duration += 0.05  # the first samples of the next cycle close the last one driven
+    duration = n_cycles * period  # the last cycle driven is estimated at the end of the stream (finish)
     speed = args.speed
 
     def _term(signum, frame):

@@ -28,8 +28,8 @@ def add_estimator_arguments(p) -> None:
                    f"the baseline: {EQ515_NEEDS}; its calibration knows one leg speed (the shipped one: 4 legs at "
                    "0.63 rad/s), a cycle driven more than 10%% faster or slower is flagged 'speed', not estimated")
     p.add_argument("--model", metavar="FILE", default=None,
-                   help="inverse model JSON of the default method (default: the shipped one, made for 4 legs at "
-                   "0.63 rad/s; tools/train_inverse.py --legs N makes one for another wheel-leg)")
+                   help="inverse model file (.npz) of the default method (default: the shipped one, made for 4 legs "
+                   "and leg speeds 0.3-1.2 rad/s; tools/train_inverse.py makes one for another wheel-leg or range)")
     p.add_argument("--kS", type=float, default=None, help="known soil stiffness [N/m]")
     p.add_argument("--phiS", type=float, default=None, help="known static friction angle [rad]")
     p.add_argument("--phiD", type=float, default=None, help="known dynamic friction angle [rad]")

@@ -29,8 +29,9 @@ truth in it is still a blind test; --truth only compares.
 Several logs or a folder: one summary table instead (per log and wheel:
 cycles, estimated, mean slip, the soil at the end, verdict, error), the
 logs replayed in parallel processes (--jobs) or on a Dask cluster
-(--scheduler, pip install 'slipest[dask]'). Exit status 1 when a log failed
-(its row says why), 2 on a bad single log or option.
+(--scheduler, pip install 'slipest[dask]'). Exit status: 1 when a log failed
+(its row says why) or a single log had no cycle estimated (its summary says
+why), 2 on a bad single log or option.
 
 Examples::
 
@@ -48,6 +49,7 @@ import sys
 from slipest.cli import estimate_output
 from slipest.cli.command import add_command
 from slipest.cli.estimator_args import add_estimator_arguments, soil_from_args
+from slipest.io.device_stream import STUCK_TIME
 from slipest.online import ESTIMATE_FIELDS
 
 #: Output columns, in order (a CAN log's rows have ``wheel`` first).
@@ -80,8 +82,11 @@ def add_parser(sub) -> None:
     c = p.add_argument_group("CAN logs")
     c.add_argument("--wheel", type=int, action="append", default=None, metavar="W",
                    help="estimate only this wheel (repeat for several; default: every wheel in the log)")
-    c.add_argument("--stuck-samples", type=int, default=50, metavar="N",
-                   help="az repeated bit-identically N times is a stuck sensor (0: never; default 50)")
+    c.add_argument("--stuck-time", type=float, default=STUCK_TIME, metavar="S",
+                   help=f"az repeated bit-identically for S seconds is a stuck sensor (default {STUCK_TIME:g}, "
+                   "as the live commands)")
+    c.add_argument("--stuck-samples", type=int, default=None, metavar="N",
+                   help="a fixed run length in samples instead of --stuck-time (0: never)")
     r = p.add_argument_group("ROS 2 bags")
     r.add_argument("--imu-topic", default="/imu", help="sensor_msgs/msg/Imu topic (default /imu)")
     r.add_argument("--joint-states-topic", default="/joint_states",
@@ -110,7 +115,7 @@ def options_from_args(args):
     return ReplayOptions(legs=args.legs, method=args.method, soil=soil_from_args(args) or None, model=args.model,
                          use_reference=args.use_reference, truth=args.truth, carry_reference=bool(args.plot),
                          skip_bad=args.skip_bad, log_format=args.log_format,
-                         wheels=tuple(args.wheel) if args.wheel else None, stuck_samples=args.stuck_samples, bag=bag,
+                         wheels=tuple(args.wheel) if args.wheel else None, stuck_samples=args.stuck_samples, stuck_time=args.stuck_time, bag=bag,
                          chunk_rows=args.chunk_rows)
 
 
@@ -195,7 +200,7 @@ def _replay_one(args, source, name: str) -> int:
             print(f"wrote {plot.plot_replay(args.plot, series, title=name)}", file=sys.stderr)
         except (ValueError, OSError) as exc:
             return _fail(f"--plot {args.plot}: {exc}")
-    return 0
+    return 0 if result.estimated else 1
 
 
 def _replay_many(args, logs: list[str]) -> int:

@@ -39,6 +39,8 @@ def add_scenario_arguments(
     g.add_argument("--phiD", type=float, default=0.35, help="dynamic friction angle [rad] (default 0.35)")
     g.add_argument("--kappa", type=float, default=0.3, help="lateral leg stiffness ratio (default 0.3; 0 = literal thesis)")
     g.add_argument("--legs", type=int, default=4, help="number of legs of the wheel-leg (default 4)")
+    g.add_argument("--omega", type=float, default=None,
+                   help="leg speed [rad/s] (default 0.63; a scenario file sets it per segment)")
     g.add_argument("--cycles", type=int, default=10, help="number of leg cycles (default 10)")
     g.add_argument("--rate", type=float, default=None, help="IMU sample rate [Hz] (default 1000)")
     g.add_argument("--noise", type=float, default=None, help=noise_help)
@@ -74,12 +76,16 @@ def build_scenario(args: argparse.Namespace) -> Scenario:
                 imu[key] = getattr(args, opt)
         if effects:
             doc["effect"] = list(doc.get("effect", [])) + effects
+        if args.omega is not None:
+            raise SystemExit("slipest simulate: --omega goes with the options; a scenario file sets the leg speed "
+                             "in [model] or per [[segment]] (omega = ...)")
         try:
             return Scenario.from_dict(doc)
         except (ValueError, TypeError) as exc:
             raise SystemExit(f"slipest simulate: {args.scenario}: {exc}") from None
     params = StickSlipParams(
-        slip=args.slip, kS=args.kS, phiS=args.phiS, phiD=args.phiD, kappa=args.kappa, nL=args.legs
+        slip=args.slip, kS=args.kS, phiS=args.phiS, phiD=args.phiD, kappa=args.kappa, nL=args.legs,
+        **({} if args.omega is None else {"omega": args.omega}),
     )
     imu = {
         "rate": 1000.0 if args.rate is None else args.rate,

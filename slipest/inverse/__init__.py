@@ -6,7 +6,7 @@
   recursive use to learn ``dphi`` from reference slips;
 * :mod:`slipest.inverse.surrogate`: the multi-feature inverse (a surrogate of the feature
   vector as a function of slip and soil, inverted by Bayes; works with the soil unknown),
-  package data ``slipest/data/inverse_model.json`` from ``tools/train_inverse.py``;
+  package data ``slipest/data/inverse_model.npz`` from ``tools/train_inverse.py``;
 * :mod:`slipest.inverse.grid_kernels`: its compiled soil-grid kernels (cell likelihoods, slip
   marginal, whitening), shared with the recursive estimator;
 * :mod:`slipest.inverse.simdata`: simulated feature rows for training and checks.

@@ -19,7 +19,7 @@ Two directions, both closed form:
 Uncertainty: the equation carries none of its own; the standard deviation
 reported is the calibration's end-to-end slip RMSE of Eq. 5.15 over its
 sweep (``rmse_end_to_end``), an honest, soil-independent figure. In this
-model that RMSE is large (spec section 5: the second-level laws do not
+model that RMSE is large (docs/model.md section 5: the second-level laws do not
 hold); the number is reported, not tuned.
 
 :class:`Eq515Tracker` is the recursive use: a 1-state Kalman filter on
@@ -122,12 +122,15 @@ class Eq515Tracker(CycleEstimator):
     uses; docs/estimator.md says why not filterpy). The slip
     of every cycle is Eq. 5.15 at the current ``dphi``; its std combines the
     equation's RMSE and the ``dphi`` uncertainty through ``bmu Da + cmu``.
-    ``model_legs``, ``model_omega`` [rad/s]: the geometry the coefficients
-    were calibrated for (:class:`~slipest.cycle_estimator.CycleEstimator`).
+    ``model_legs``, ``model_omega`` [rad/s]: the geometry and the one leg
+    speed the coefficients were calibrated at; cycles within ``speed_tol``
+    (relative) of it are estimated (:class:`~slipest.cycle_estimator.CycleEstimator`'s
+    ``omega_range``): Eq. 5.15 knows one speed.
     """
 
     def __init__(self, inverse: Eq515Inverse, soil: Soil, use_reference: bool = False, dphi0: float = 0.175,
-                 dphi0_std: float = 0.1, q: float = 1e-4, model_legs: int = 4, model_omega: float = 0.63):
+                 dphi0_std: float = 0.1, q: float = 1e-4, model_legs: int = 4, model_omega: float = 0.63,
+                 speed_tol: float = 0.1):
         if soil is None or soil.kS is None:
             raise ValueError("method 'eq515' needs the soil's kS (Eq. 5.15 cannot learn it)")
         if soil.dphi is None and not use_reference:
@@ -140,6 +143,9 @@ class Eq515Tracker(CycleEstimator):
         self.dphi_known = soil.dphi is not None
         self.model_legs = int(model_legs)
         self.model_omega = float(model_omega)
+        if not 0.0 < speed_tol < 1.0:
+            raise ValueError(f"speed_tol={speed_tol} must be in (0, 1)")
+        self.omega_range = (self.model_omega * (1.0 - speed_tol), self.model_omega * (1.0 + speed_tol))
         self._dphi0 = float(soil.dphi if self.dphi_known else dphi0)
         self._dphi0_std = float(dphi0_std)
         self._q = float(q)

@@ -1,16 +1,16 @@
 """Compiled kernels of the soil-grid inversions (numba, one thread, float32 tables).
 
-The grid inversions (:class:`slipest.inverse.surrogate.SurrogateInverse`, one
+The grid inversions (:class:`slipest.inverse.feature_inverse.FeatureInverse`, one
 cycle; :class:`slipest.estimator.SoilSlipEstimator`, recursive) compare a
 cycle's whitened features ``fw`` with the whitened mean features of every
 soil cell ``s`` at every slip node ``k``:
 
-    d(s, k) = -|fw - table[:, k, s]|^2 / 2 + lp[k]        [nats]
+    d(s, k) = -scale |fw - table[:, k, s]|^2 / 2 + lp[k]        [nats]
 
 (``lp``: log prior of the slip nodes), then marginalise slip (per cell) or
 the soil (per slip node). Tables are **columnar**, ``(D, K, S)`` float32:
 coordinate, slip node, soil cell, the cell innermost, so that every inner
-loop runs over the cells (3410 by default) contiguously and vectorises;
+loop runs over the cells (about 6000 by default) contiguously and vectorises;
 loops over the 28-56 slip nodes of one cell are too short to.
 
 ``exp`` of a log-likelihood difference is :func:`fexp` where the sums are
@@ -42,54 +42,49 @@ def fexp(d):
 
 
 @numba.njit(cache=True)
-def whiten_into(row, cols, log_offset, proj, scale, fw):
-    """A full feature row in the tables' coordinates (the compiled :meth:`~slipest.inverse.surrogate.SurrogateInverse.whiten`).
+def whiten_into(row, cols, whitener, fw):
+    """A full feature row in a table's coordinates: ``fw[:n] = float32(row[cols] @ whitener)``.
 
-    ``row``: ``(F,)`` float64 feature row (order of ``FEATURE_NAMES``, units
-    of ``FEATURE_UNITS``); ``cols``: ``(d,)`` int64 columns of the modelled
-    features; ``log_offset``: ``(d,)`` float64, where finite the feature is
-    modelled as ``log(max(f + offset, 1e-12))``; ``proj``: ``(d, n)``
-    float64 whitening and projection; ``scale``: float32 factor. Writes
-    ``fw[:n] = float32(observed @ proj) * scale`` and zeros in the padding
-    of ``fw`` (float32). Returns False, ``fw`` untouched, when a modelled
+    ``row``: ``(F,)`` float64 feature row (order of ``FEATURE_NAMES``);
+    ``cols``: ``(d,)`` int64 columns of the modelled features; ``whitener``:
+    ``(d, n)`` float64. Returns False, ``fw`` untouched, when a modelled
     feature is not finite.
     """
-    d, n = proj.shape
-    y = np.empty(d)
+    d, n = whitener.shape
     for i in range(d):
-        v = row[cols[i]]
-        if not np.isfinite(v):
+        if not np.isfinite(row[cols[i]]):
             return False
-        off = log_offset[i]
-        y[i] = math.log(max(v + off, 1e-12)) if np.isfinite(off) else v
     for j in range(n):
         acc = 0.0
         for i in range(d):
-            acc += y[i] * proj[i, j]
-        fw[j] = np.float32(acc) * scale
-    for j in range(n, fw.size):
-        fw[j] = np.float32(0.0)
+            acc += row[cols[i]] * whitener[i, j]
+        fw[j] = np.float32(acc)
     return True
 
 
 @numba.njit(cache=True, fastmath=True)
-def grid_loglik(tc, fw, lp, node_width, dmat, lc, scratch):
+def grid_loglik(tc, fw, lp, node_width, scale, fit_level, dmat, lc, scratch):
     """Cell log-likelihoods with the slip marginalised over the table's slip nodes.
 
     ``tc``: ``(D, K, S)`` float32 columnar table; ``fw``: ``(D,)`` float32
     whitened features; ``lp``: ``(K,)`` float32 log prior of the nodes;
-    ``node_width``: node spacing [-]. Writes ``dmat[k, s] = d(s, k)``
-    (``(K, S)`` float32) and ``lc[s] = log(node_width * sum_k exp(d(s, k)))``
-    (``(S,)`` float64), a Riemann sum of the likelihood over slip, the exp
-    by :func:`fexp` relative to the cell's largest term. ``scratch``:
-    ``(2, S)`` float32 (the largest term, the sum).
+    ``node_width``: node spacing [-]; ``scale``: the likelihood's exponent
+    (tempering). The smallest squared whitened distance over cells and nodes,
+    ``best``, says how well the model explains the cycle: when it exceeds
+    ``fit_level`` (inf: never) the exponent is divided by ``misfit = best /
+    fit_level`` (the likelihood widened by the misfit). Writes ``dmat[k, s] =
+    d(s, k) = -scale |fw - tc[:, k, s]|^2 / (2 misfit) + lp[k]`` (``(K, S)``
+    float32) and ``lc[s] = log(node_width * sum_k exp(d(s, k)))`` (``(S,)``
+    float64), a Riemann sum of the likelihood over slip, the exp by
+    :func:`fexp` relative to the cell's largest term. ``scratch``: ``(2, S)``
+    float32 (the largest term, the sum). Returns ``(best, misfit)``.
     """
     D, K, S = tc.shape
     mx = scratch[0]
     tot = scratch[1]
+    best = np.inf
     for k in range(K):
         row = dmat[k]
-        lk = lp[k]
         for s in range(S):
             row[s] = np.float32(0.0)
         for j in range(D):
@@ -99,7 +94,15 @@ def grid_loglik(tc, fw, lp, node_width, dmat, lc, scratch):
                 e = tj[s] - fj
                 row[s] += e * e
         for s in range(S):
-            row[s] = np.float32(-0.5) * row[s] + lk
+            if row[s] < best:
+                best = row[s]
+    misfit = best / fit_level if best > fit_level else 1.0
+    half = np.float32(-0.5 * scale / misfit)
+    for k in range(K):
+        row = dmat[k]
+        lk = lp[k]
+        for s in range(S):
+            row[s] = half * row[s] + lk
         if k == 0:
             for s in range(S):
                 mx[s] = row[s]
@@ -116,6 +119,7 @@ def grid_loglik(tc, fw, lp, node_width, dmat, lc, scratch):
             tot[s] += fexp(row[s] - mx[s])
     for s in range(S):
         lc[s] = mx[s] + math.log(tot[s] * node_width)
+    return best, misfit
 
 
 @numba.njit(cache=True, fastmath=True)

@@ -1,92 +1,129 @@
-"""Simulated per-cycle features for training and checking the inverses (pure computation).
+"""Simulated per-cycle features over the estimator's envelope, for training and checking inverses (pure computation).
 
-The feature vectors a real stream would give are produced here without
-building a stream: each stance is simulated by
-:func:`slipest.model.stance.simulate_batch` on its ``dt`` grid, sampled at
-the IMU rate with a random sub-sample offset (as
-:mod:`slipest.model.stream` samples the continuous signal), given Gaussian
-noise of ``noise_g`` [g] and passed to :func:`slipest.features.features_batch`.
-The stream's own path (segmenter included) is what the benchmarks use.
+The feature rows a real stream would give are produced without building a
+stream: each stance is simulated by :func:`slipest.model.stance.simulate_batch`
+on its ``dt`` grid, sampled like an IMU at its own rate with a random
+sub-sample offset (as :mod:`slipest.model.stream` samples the continuous
+signal), given Gaussian noise and passed to the feature routine of
+:mod:`slipest.features` with that noise level. The stream's own path
+(segmenter included) is what the benchmarks use.
 
-Soil and slip ranges are those of the spec and of the shipped calibration
-grid: ``kS`` 500-1500 N/m, ``phiD`` 0.1-0.4 rad, ``dphi`` 0-0.35 rad, slip
-0-0.5 (:data:`RANGES`).
+The *envelope* (:data:`ENVELOPE`) is what the shipped inverse model covers,
+with a margin beyond what the estimator promises (``phiS`` up to 0.8 rad,
+``phiD`` from 0.10 rad up to ``phiS``, ``dphi`` 0-0.35 rad, ``kS`` 500-1500 N/m,
+slip 0-0.5, leg speed 0.3-1.2 rad/s, IMU 200 Hz - 2 kHz), so that the model's
+edges are not where the estimates are made.
 """
 
 from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 
-from slipest.features import FEATURE_NAMES, features_batch
+from slipest.features import FEATURE_NAMES, N_GRID, _row_features
+from slipest.model import kernel as K
 from slipest.model.params import StickSlipParams
 from slipest.model.stance import DEFAULT_DT, simulate_batch
 from slipest.units import G
 
-#: Parameter ranges [lo, hi] of the training and benchmark draws (SI).
-RANGES = {"slip": (0.0, 0.5), "kS": (500.0, 1500.0), "phiD": (0.1, 0.4), "dphi": (0.0, 0.35)}
+#: Ranges [lo, hi] of the training draw (SI): slip [-], kS [N/m], phiS, dphi [rad], omega [rad/s].
+ENVELOPE = {"slip": (0.0, 0.55), "kS": (400.0, 1700.0), "phiS": (0.1, 0.9), "dphi": (0.0, 0.4), "omega": (0.25, 1.3)}
+#: Smallest dynamic friction angle ``phiD = phiS - dphi`` of the draw [rad].
+PHID_MIN = 0.08
+#: IMU rates [Hz] and noise standard deviations [g] the training draws from (log-uniform rate, uniform noise).
+RATE_RANGE = (200.0, 2000.0)
+NOISE_RANGE = (0.0, 0.03)
+#: The variables of a draw, in column order.
+VARIABLES = ("slip", "kS", "phiS", "dphi", "omega")
 
 
-def draw_soils(n: int, rng: np.random.Generator) -> np.ndarray:
-    """``n`` soils uniform in :data:`RANGES`: ``(n, 3)`` columns kS [N/m], phiS, phiD [rad]."""
-    kS = rng.uniform(*RANGES["kS"], n)
-    phiD = rng.uniform(*RANGES["phiD"], n)
-    dphi = rng.uniform(*RANGES["dphi"], n)
-    return np.column_stack([kS, phiD + dphi, phiD])
+def draw_envelope(n: int, rng: np.random.Generator, envelope: dict | None = None, phid_min: float = PHID_MIN) -> np.ndarray:
+    """``n`` points uniform over the envelope with ``phiS - dphi >= phid_min``: ``(n, 5)`` columns :data:`VARIABLES`."""
+    env = envelope or ENVELOPE
+    out = np.empty((0, 5))
+    while len(out) < n:
+        m = 2 * (n - len(out)) + 16
+        x = np.column_stack([rng.uniform(*env[k], m) for k in VARIABLES])
+        out = np.vstack([out, x[x[:, 2] - x[:, 3] >= phid_min]])
+    return out[:n]
 
 
-def simulate_features(
-    slip,
-    kS,
-    phiS,
-    phiD,
-    rate: float = 1000.0,
-    noise_g: float = 0.01,
-    rng: np.random.Generator | None = None,
-    base: StickSlipParams | None = None,
-    chunk: int = 512,
-    dt: float = DEFAULT_DT,
-    progress=None,
-) -> np.ndarray:
+def draw_imu(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` IMU settings: rates [Hz] (log-uniform over :data:`RATE_RANGE`) and noise [g] (uniform over :data:`NOISE_RANGE`)."""
+    rate = np.exp(rng.uniform(math.log(RATE_RANGE[0]), math.log(RATE_RANGE[1]), n))
+    return rate, rng.uniform(*NOISE_RANGE, n)
+
+
+@numba.njit(parallel=True, cache=True)
+def _sample_and_featurise(theta, az, n_steps, ok, omega, rate, noise, offset, seeds, g, half, out):
+    """Per stance ``b``: sample the waveform at ``rate[b]`` from phase ``offset[b]``, add N(0, noise[b]) [g], features."""
+    for b in numba.prange(theta.shape[0]):
+        if not ok[b]:
+            for j in range(out.shape[1]):
+                out[b, j] = np.nan
+            continue
+        m = n_steps[b]
+        step = omega[b] / rate[b]
+        k = int((theta[b, m - 1] - offset[b]) / step) + 1
+        ph = np.empty(k)
+        a = np.empty(k)
+        np.random.seed(seeds[b])
+        j = 0
+        for i in range(k):
+            p = offset[b] + i * step
+            while j < m - 2 and theta[b, j + 1] < p:
+                j += 1
+            w = (p - theta[b, j]) / (theta[b, j + 1] - theta[b, j])
+            ph[i] = p
+            a[i] = (az[b, j] * (1.0 - w) + az[b, j + 1] * w) / g + 1.0 + np.random.normal() * noise[b]
+        _row_features(ph, a, half, omega[b], noise[b], N_GRID, out[b])
+
+
+def simulate_features(x, rate, noise, rng: np.random.Generator, base: StickSlipParams | None = None,
+                      chunk: int = 2000, dt: float = DEFAULT_DT, progress=None) -> np.ndarray:
     """Feature rows ``(n, len(FEATURE_NAMES))`` of ``n`` simulated stances.
 
-    slip [-], kS [N/m], phiS, phiD [rad]: 1-D arrays of one length.
-    rate: IMU sample rate [Hz]; noise_g: noise standard deviation [g].
-    base: the other model parameters (default :class:`StickSlipParams`).
-    Rows whose stance failed in the model are NaN. ``progress(k)``, when
-    given, is called with the number of stances done after each chunk.
+    x: ``(n, 5)`` columns :data:`VARIABLES` (slip [-], kS [N/m], phiS, dphi
+    [rad], omega [rad/s]); rate [Hz] and noise [g]: ``(n,)`` IMU settings
+    (the features are computed knowing the noise, as the online layer does
+    with its estimate); base: the other model parameters (default
+    :class:`StickSlipParams`: the project's hardware and ``kappa``). Rows
+    whose stance failed in the model are NaN. ``progress(k)``, when given,
+    is called with the number of stances done after each chunk.
     """
-    rng = rng or np.random.default_rng()
+    x = np.asarray(x, dtype=float)
+    n = len(x)
+    rate = np.broadcast_to(np.asarray(rate, dtype=float), (n,)).copy()
+    noise = np.broadcast_to(np.asarray(noise, dtype=float), (n,)).copy()
     base = base or StickSlipParams()
-    slip, kS, phiS, phiD = (np.atleast_1d(np.asarray(v, dtype=float)) for v in (slip, kS, phiS, phiD))
-    n = slip.size
+    row = base.to_row()
     out = np.full((n, len(FEATURE_NAMES)), np.nan)
-    half = math.pi / base.nL
-    step = base.omega / rate  # phase between samples [rad]
     for k0 in range(0, n, chunk):
         sl = slice(k0, min(n, k0 + chunk))
-        params = [
-            base.with_(slip=float(a), kS=float(b), phiS=float(c), phiD=float(d))
-            for a, b, c, d in zip(slip[sl], kS[sl], phiS[sl], phiD[sl])
-        ]
-        res = simulate_batch(params, dt=dt, waveforms=True, on_error="flag")
-        m = int(res.n_steps[res.ok].min()) if res.ok.any() else 0
-        if m < 2:
-            if progress:
-                progress(len(params))
-            continue
-        theta = res.theta[int(np.argmax(res.ok)), :m]
-        offset = rng.uniform(0.0, step)
-        ph = np.arange(offset, half, step)
-        ph = ph[ph <= theta[-1]]
-        # linear interpolation on the common theta grid of the batch (one phase grid for all rows)
-        j = np.clip(np.searchsorted(theta, ph, side="right") - 1, 0, m - 2)
-        w = (ph - theta[j]) / (theta[j + 1] - theta[j])
-        az = res.az[:, j] * (1.0 - w) + res.az[:, j + 1] * w + base.g
-        az[~res.ok] = np.nan
-        az += rng.normal(0.0, noise_g * G, az.shape)
-        out[sl] = features_batch(ph, az, n_legs=base.nL, omega=base.omega)
+        xs = x[sl]
+        mat = np.tile(row, (len(xs), 1))
+        mat[:, K.P_SLIP] = xs[:, 0]
+        mat[:, K.P_KS] = xs[:, 1]
+        mat[:, K.P_MUS] = np.tan(xs[:, 2])
+        mat[:, K.P_MUD] = np.tan(xs[:, 2] - xs[:, 3])
+        mat[:, K.P_OMEGA] = xs[:, 4]
+        res = simulate_batch(mat, dt=dt, waveforms=True, on_error="flag")
+        offset = rng.uniform(0.0, 1.0, len(xs)) * xs[:, 4] / rate[sl]
+        seeds = rng.integers(0, 2**31, len(xs))
+        _sample_and_featurise(res.theta, res.az, res.n_steps, res.ok, np.ascontiguousarray(xs[:, 4]), rate[sl],
+                              noise[sl], offset, seeds, float(base.g), math.pi / base.nL, out[sl])
         if progress:
-            progress(len(params))
+            progress(len(xs))
     return out
+
+
+def draw_soils(n: int, rng: np.random.Generator, envelope: dict | None = None) -> np.ndarray:
+    """``n`` soils uniform over the envelope: ``(n, 3)`` columns kS [N/m], phiS, phiD [rad]."""
+    x = draw_envelope(n, rng, envelope)
+    return np.column_stack([x[:, 1], x[:, 2], x[:, 2] - x[:, 3]])
+
+
+__all__ = ["ENVELOPE", "PHID_MIN", "RATE_RANGE", "NOISE_RANGE", "VARIABLES", "draw_envelope", "draw_imu", "draw_soils",
+           "simulate_features"]

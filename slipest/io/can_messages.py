@@ -63,6 +63,9 @@ __all__ = [
     "TIME_MOD_PERIOD",
     "QUALITY_OK",
     "QUALITY_INVALID",
+    "QUALITY_REPAIRED",
+    "QUALITY_MISFIT",
+    "QUALITY_REPAIRED_MISFIT",
     "IMU_SAMPLE",
     "SLIP_ESTIMATE",
     "SLIP_REFERENCE",
@@ -95,6 +98,9 @@ _TIME_STEPS = 65536
 QUALITY_OK = 0
 #: SlipEstimate ``Quality`` value meaning "values not valid" (set for NaN).
 QUALITY_INVALID = 15
+#: SlipEstimate ``Quality`` values by name, as the DBC's value table has them (checked against it by the tests):
+#: estimated without a few missing/unusable/outlier samples; the model did not explain the cycle; both.
+QUALITY_REPAIRED, QUALITY_MISFIT, QUALITY_REPAIRED_MISFIT = 1, 2, 3
 
 #: Message kinds (DBC message name prefixes).
 IMU_SAMPLE = "ImuSample"
@@ -315,7 +321,8 @@ def encode_slip_estimate(wheel: int, counter: int, slip: float, slip_std: float,
     :param slip_std: standard deviation of slip [-], saturated to [0, 0.511].
     :param dphi: slip angle per cycle [rad], saturated to +-1.6384.
     :param dphi_std: standard deviation of dphi [rad], saturated to [0, 1.023].
-    :param quality: estimator quality/status code 0..15 (0 OK, 15 INVALID).
+    :param quality: estimator quality code 0..15 (0 OK, 1 REPAIRED, 2 MISFIT, 3 REPAIRED_MISFIT, 15 INVALID:
+        the DBC's value table).
         Any NaN value forces Quality=15 and all values are then sent as 0.
     :raises ValueError: wheel or quality out of range.
     """

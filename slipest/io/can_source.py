@@ -27,7 +27,10 @@ from slipest.io.bus_args import BusConfig, ReconnectingBus
 from slipest.io.can_messages import (
     COUNTER_MODULUS,
     QUALITY_INVALID,
+    QUALITY_MISFIT,
     QUALITY_OK,
+    QUALITY_REPAIRED,
+    QUALITY_REPAIRED_MISFIT,
     TIME_MOD_PERIOD,
     CanDecoder,
     ImuMessage,
@@ -43,10 +46,17 @@ SOCKETCAND_LOGGER = "can.interfaces.socketcand.socketcand"
 
 
 def estimate_message(wheel: int, estimate):
-    """The SlipEstimate message of one cycle's estimate (Quality 0, or 15 when not estimated)."""
+    """The SlipEstimate message of one cycle's estimate: Quality OK, REPAIRED (estimated without a few
+    samples), MISFIT (the model did not explain the cycle: ``misfit > 1``), REPAIRED_MISFIT, or INVALID
+    when not estimated."""
     quality = str(getattr(estimate, "quality", "ok"))
     values = [float(getattr(estimate, k, math.nan)) for k in ("slip", "slip_std", "dphi", "dphi_std")]
-    code = QUALITY_OK if quality == "ok" and all(v == v for v in values) else QUALITY_INVALID
+    if not getattr(estimate, "ok", quality == "ok") or not all(v == v for v in values):
+        code = QUALITY_INVALID
+    else:
+        misfit = float(getattr(estimate, "misfit", math.nan)) > 1.0
+        code = ((QUALITY_REPAIRED_MISFIT if misfit else QUALITY_REPAIRED) if quality == "repaired"
+                else (QUALITY_MISFIT if misfit else QUALITY_OK))
     return encode_slip_estimate(wheel, int(getattr(estimate, "cycle", 0)), *values, quality=code)
 
 

@@ -31,9 +31,11 @@ from.  Each frame goes through these rules, in arrival order:
   range is still counted right.  Without a counter (``seq_modulus=0``),
   losses are read from the time step alone.  For each lost frame a sample
   with ``az = NaN`` is inserted at its time (times and angles interpolated
-  between the neighbours; ``filled``), so the segmenter flags a cycle whose
-  feature window lost even one sample (quality ``"nan"``) and never
-  estimates from it.  One loss inserts at most ``max_fill`` evenly spaced
+  between the neighbours; ``filled``): the estimator leaves them out,
+  bridges a few in a row (a cycle estimated so is ``"repaired"``) and
+  flags a cycle with a longer run (``"nan"``; the rule is
+  :class:`slipest.segmentation.CycleSegmenter`'s), never estimating from
+  a lost sample.  One loss inserts at most ``max_fill`` evenly spaced
   samples (the rest shows as a time gap).
 * **Restarts.**  A device that starts again counts from scratch: its
   counter no longer follows its clock.  When the counter's jump and the time

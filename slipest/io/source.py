@@ -217,18 +217,24 @@ class Source(abc.ABC):
         """Events for people (disconnections, reconnections), waiting now; never blocks."""
         return drain(self._notices, 0)
 
-    def close(self) -> None:
-        """Stop reading and close the link (idempotent); notices left out are summed up (one per kind)."""
+    def stop_reading(self) -> None:
+        """Stop the reader thread, the link left open (what it read is still in :meth:`get`; :meth:`publish`
+        and the like still work): the end of a run, before its last estimates are sent; notices left out are
+        summed up (one per kind). Idempotent."""
         self._stop.set()
         self._interrupt()
         if self._thread is not None:
             self._thread.join(timeout=2.0)
-        self._release()
         with self._notice_lock:
             for budget in self._notice_budget.values():
                 if budget[2]:
                     self._notices.put(f"{budget[2]} more like this not shown, the last: {budget[3]}")
                     budget[2] = 0
+
+    def close(self) -> None:
+        """Stop reading (:meth:`stop_reading`) and close the link (idempotent)."""
+        self.stop_reading()
+        self._release()
 
     def __enter__(self) -> "Source":
         return self

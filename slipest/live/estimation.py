@@ -48,6 +48,7 @@ class WheelState:
     estimates: int = 0
     cycles_seen: int = 0
     qualities: dict = field(default_factory=dict)
+    hints_said: set = field(default_factory=set)
 
 
 class LiveEstimation:
@@ -94,6 +95,7 @@ class LiveEstimation:
         self.sim_speed = sim_speed
         self.on_estimate = on_estimate or (lambda wheel, est, info: None)
         self._factory = estimator_factory or self._default_factory
+        self._closed = False
         self.recorder = (Recorder(record, n_legs=n_legs, source=source.describe(), overwrite=overwrite)
                          if record else None)
         self.wheels: dict[int, WheelState] = {}
@@ -231,27 +233,43 @@ class LiveEstimation:
             else:
                 estimates = est.push_many(s.t, s.az, s.theta, s.slip if self.use_reference else None)
         except (ValueError, FloatingPointError) as exc:  # never let one bad cycle stop the stream
-            self.c["estimator_errors"] += 1
-            self.last_error = f"wheel {wheel}: {type(exc).__name__}: {exc}"
+            self._estimator_error(wheel, exc)
             return
+        self._report(wheel, st, estimates, s)
+
+    def _estimator_error(self, wheel: int, exc: Exception) -> None:
+        self.c["estimator_errors"] += 1
+        self.last_error = f"wheel {wheel}: {type(exc).__name__}: {exc}"
+
+    def _report(self, wheel: int, st: WheelState, estimates: list, s: WheelSamples | None) -> None:
+        """Count and hand on a wheel's estimates; ``s``: the samples that closed them (their intake times
+        give the latency), None at the end of the stream."""
         now = time.monotonic()
         for est in estimates:
             st.cycles_seen += 1
             q = str(getattr(est, "quality", "ok"))
             st.qualities[q] = st.qualities.get(q, 0) + 1
             slip = getattr(est, "slip", math.nan)
-            if q != "ok" or slip != slip:
+            if not getattr(est, "ok", q == "ok") or slip != slip:
                 self.c["cycles_flagged"] += 1
             else:
                 st.estimates += 1
                 self.c["estimates"] += 1
-            t_end = float(getattr(est, "t_end", math.nan))
-            k = int(np.searchsorted(s.t, t_end)) if t_end == t_end else -1
-            intake = float(s.intake[k]) if 0 <= k < len(s) and s.t[k] == t_end else math.nan
+            intake = math.nan
+            if s is not None:
+                t_end = float(getattr(est, "t_end", math.nan))
+                k = int(np.searchsorted(s.t, t_end)) if t_end == t_end else -1
+                intake = float(s.intake[k]) if 0 <= k < len(s) and s.t[k] == t_end else math.nan
             latency = now - intake if intake == intake else math.nan
             if latency == latency:
                 self._estimate_latency.append(latency)
             self.on_estimate(wheel, est, {"intake": intake, "latency": latency, "ready": now})
+        hints = getattr(st.estimator, "hints", None)
+        if estimates and hints and len(hints) > len(st.hints_said):
+            for kind, text in hints.items():
+                if kind not in st.hints_said:
+                    st.hints_said.add(kind)
+                    self._notices.append(f"wheel {wheel}: {text}")
 
     def flush(self, force: bool = False) -> None:
         """Write the recording's buffered samples (every 0.1 s at most unless ``force``)."""
@@ -259,10 +277,24 @@ class LiveEstimation:
             self.recorder.flush(force)
 
     def close(self) -> None:
-        """Hand on the samples the streams still hold, then write, flush and close the recording."""
+        """Hand on the samples the streams still hold, end every wheel's stream (its last cycle, which no
+        sample will close, is estimated: see :meth:`slipest.online.SlipEstimator.finish`), then write, flush
+        and close the recording. Idempotent: a second call does nothing."""
+        if self._closed:
+            return
+        self._closed = True
         try:
             for wheel, st in self.wheels.items():
                 self._push(wheel, st, st.stream.flush())
+                finish = getattr(st.estimator, "finish", None)
+                if finish is None:
+                    continue
+                try:
+                    estimates = finish()
+                except (ValueError, FloatingPointError) as exc:
+                    self._estimator_error(wheel, exc)
+                    continue
+                self._report(wheel, st, estimates, None)
         finally:
             if self.recorder is not None:
                 self.recorder.close()

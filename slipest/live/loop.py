@@ -263,10 +263,11 @@ def run_live(source, live, stop: StopConditions | None = None, *, on_notice: Cal
             if ended and not batches:
                 reason = "the source ended" + (f" ({source.last_error})" if source.last_error else "")
                 break
-        source.close()
+        source.stop_reading()
         rest = source.get(0)  # read before the reader stopped: recorded and estimated like the others
         if rest:
             live.feed(rest)
+        live.close()  # the last cycles, estimated and handed on while the link is still open (CAN: published)
         notices()
     except KeyboardInterrupt:  # without signal handling (handle_signals=False): Ctrl-C's default
         reason, interrupted = "interrupted", True

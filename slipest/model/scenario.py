@@ -20,6 +20,10 @@ TOML/dict layout (every key optional except the segments)::
     kS = 1000.0      # [N/m]
     phiS = 0.52      # [rad]
     phiD = 0.35      # [rad]
+    omega = 0.8      # leg speed [rad/s] (a ramp too)
+
+A key a segment omits takes its value from ``[model]`` (or the model's
+default), not from the previous segment.
     [[effect]]       # effects of the sim-to-real catalog (slipest.model.effects)
     name = "imu_lowpass"
     cutoff = 40.0
@@ -39,8 +43,8 @@ from slipest.model.stance import DEFAULT_DT
 #: Default IMU sample rate [Hz].
 DEFAULT_RATE = 1000.0
 
-#: Per-cycle fields a segment may set; the rest belong to [model].
-SEGMENT_FIELDS = ("slip", "kS", "phiS", "phiD")
+#: Per-cycle fields a segment may set (``omega``: the leg speed [rad/s]); the rest belong to [model].
+SEGMENT_FIELDS = ("slip", "kS", "phiS", "phiD", "omega")
 
 
 @dataclass(frozen=True)
@@ -67,8 +71,8 @@ class Scenario:
             raise ValueError("a scenario needs at least one leg cycle")
         first = self.cycles[0]
         for j, c in enumerate(self.cycles):
-            if (c.nL, c.omega) != (first.nL, first.omega):
-                raise ValueError(f"cycle {j}: nL and omega must be the same for every cycle of a run")
+            if c.nL != first.nL:
+                raise ValueError(f"cycle {j}: nL must be the same for every cycle of a run")
         if not (math.isfinite(self.rate) and self.rate > 0):
             raise ValueError(f"IMU rate={self.rate} Hz must be positive")
         if not (math.isfinite(self.noise_g) and self.noise_g >= 0):
@@ -82,8 +86,13 @@ class Scenario:
 
     @property
     def omega(self) -> float:
-        """Nominal leg angular speed [rad/s]."""
+        """Leg angular speed of the first cycle [rad/s] (each cycle has its own, :attr:`omegas`)."""
         return self.cycles[0].omega
+
+    @property
+    def omegas(self) -> np.ndarray:
+        """Leg angular speed of every cycle [rad/s]."""
+        return np.array([c.omega for c in self.cycles])
 
     @property
     def slips(self) -> np.ndarray:
@@ -174,7 +183,6 @@ class Scenario:
         first = self.cycles[0]
         meta = {
             "nL": str(first.nL),
-            "omega": f"{first.omega:g}",
             "rate": f"{self.rate:g}",
             "noise_g": f"{self.noise_g:g}",
             "dt": f"{self.dt:g}",
@@ -184,7 +192,7 @@ class Scenario:
             meta["seed"] = str(self.seed)
         for name in ("kappa", "MH", "mF", "lS"):
             meta[name] = f"{getattr(first, name):g}"
-        for name in SEGMENT_FIELDS:
+        for name in SEGMENT_FIELDS:  # omega among them: "varies" when the drive changes speed
             values = {getattr(c, name) for c in self.cycles}
             meta[name] = f"{values.pop():g}" if len(values) == 1 else "varies"
         if self.effects:

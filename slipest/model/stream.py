@@ -14,7 +14,10 @@ Conventions (the project's log format):
 * ``az`` [m/s^2] is the vertical specific force an IMU reports, z up,
   gravity included (``+g`` at rest): the hub's ``zH'' + g``.
 
-The model integrates at its own step ``dt``; the continuous signal is built
+Each cycle runs at its own leg speed (a drive may change speed from one
+cycle to the next): cycle ``k`` lasts ``2 pi / (nL omega_k)`` (with a
+drive ripple, its timeline's period). The model integrates at its own step
+``dt``; the continuous signal is built
 on that grid, passes the "continuous" sensor stages (hub transients, the
 IMU's bandwidth), is sampled at the IMU rate, then passes the "sampled"
 stages (noise, clipping, encoder offset). The stream is produced in chunks
@@ -106,6 +109,40 @@ def _effect_chain(scenario: Scenario):
     return compile_effects(scenario.effects)
 
 
+class _Schedule:
+    """When each cycle starts [s] and its timeline: cycle ``k`` spans ``[start[k], start[k + 1])``."""
+
+    def __init__(self, cycles):
+        cache: dict = {}
+        self.timelines = []
+        for c in cycles:
+            key = (c.nL, c.omega, c.ripple_amp, c.ripple_phase)
+            if key not in cache:
+                cache[key] = CycleTimeline(c)
+            self.timelines.append(cache[key])
+        self.start = np.concatenate([[0.0], np.cumsum([tl.period for tl in self.timelines])])
+
+    def cycle_of(self, t, k0: int, k1: int) -> np.ndarray:
+        """Cycle index of each time [s], within ``[k0, k1)``."""
+        return np.clip(np.searchsorted(self.start, t, side="right") - 1, k0, k1 - 1)
+
+    def phase(self, t, k) -> np.ndarray:
+        """Leg phase [rad] at times ``t`` [s] of cycles ``k`` (phase ``-pi/nL`` at each cycle's start)."""
+        out = np.empty(len(t))
+        for kk in np.unique(k):
+            sel = k == kk
+            tl = self.timelines[kk]
+            out[sel] = tl.phase(np.clip(t[sel] - self.start[kk], 0.0, tl.period))
+        return out
+
+
+def cycle_starts(scenario: Scenario) -> np.ndarray:
+    """Start times [s] of the scenario's leg cycles, and the end of the last: ``(len(cycles) + 1,)``, from 0
+    (each cycle lasts ``2 pi / (nL omega)`` at its own leg speed, longer or shorter with a speed ripple)."""
+    transform, _ = _effect_chain(scenario)
+    return _Schedule([transform(c) for c in scenario.cycles]).start
+
+
 def iter_stream(scenario: Scenario, chunk_cycles: int = 32) -> Iterator[SampleChunk]:
     """Yield the scenario's samples in chunks of ``chunk_cycles`` leg cycles."""
     if chunk_cycles < 1:
@@ -116,28 +153,30 @@ def iter_stream(scenario: Scenario, chunk_cycles: int = 32) -> Iterator[SampleCh
     stages += [GaussianNoise(scenario.noise_g)]
     stages += [s for s in effect_stages if s.domain == "sampled"]
     rng = np.random.default_rng(scenario.seed)
-    timeline = CycleTimeline(cycles[0])
-    period = timeline.period
-    n_legs = timeline.n_legs
+    schedule = _Schedule(cycles)
+    start = schedule.start
+    n_legs = cycles[0].nL
     dt = scenario.dt
     rate = scenario.rate
     for k0 in range(0, len(cycles), chunk_cycles):
         k1 = min(k0 + chunk_cycles, len(cycles))
         chunk_params = cycles[k0:k1]
         batch = simulate_batch(chunk_params, dt=dt, waveforms=True)
-        # continuous signal on the model grid covering [k0 T, k1 T)
-        n = np.arange(math.ceil(k0 * period / dt - 1e-9), math.ceil(k1 * period / dt - 1e-9))
+        # continuous signal on the model grid covering [start k0, start k1)
+        n = np.arange(math.ceil(start[k0] / dt - 1e-9), math.ceil(start[k1] / dt - 1e-9))
         t_grid = n * dt
-        az_grid = _hub_acceleration(t_grid, k0, k1, period, timeline, chunk_params, batch) + cycles[0].g
-        theta_grid = _theta(t_grid, k0, k1, period, timeline)
+        k_grid = schedule.cycle_of(t_grid, k0, k1)
+        phi_grid = schedule.phase(t_grid, k_grid)
+        az_grid = _hub_acceleration(k_grid, phi_grid, k0, schedule, chunk_params, batch) + cycles[0].g
+        theta_grid = 2 * math.pi * k_grid / n_legs + phi_grid
         az_grid, _ = run_stages(stages, "continuous", t_grid, az_grid, theta_grid, rng)
-        # IMU samples in [k0 T, k1 T)
-        s = np.arange(math.ceil(k0 * period * rate - 1e-9), math.ceil(k1 * period * rate - 1e-9))
+        # IMU samples in [start k0, start k1)
+        s = np.arange(math.ceil(start[k0] * rate - 1e-9), math.ceil(start[k1] * rate - 1e-9))
         t = s / rate
         az = np.interp(t, t_grid, az_grid)
-        theta = _theta(t, k0, k1, period, timeline)
+        k = schedule.cycle_of(t, k0, k1)
+        theta = 2 * math.pi * k / n_legs + schedule.phase(t, k)
         az, theta = run_stages(stages, "sampled", t, az, theta, rng)
-        k = np.clip(np.floor(t / period).astype(np.int64), k0, k1 - 1)
         slips = np.array([c.slip for c in scenario.cycles[k0:k1]])
         yield SampleChunk(t=t, az=az, theta=theta, slip=slips[k - k0], cycle=k)
 
@@ -147,34 +186,24 @@ def simulate_stream(scenario: Scenario) -> SampleChunk:
     return SampleChunk.concatenate(iter_stream(scenario))
 
 
-def _cycle_and_phase(t, k0, k1, period, timeline):
-    k = np.clip(np.floor(t / period).astype(np.int64), k0, k1 - 1)
-    tau = np.clip(t - k * period, 0.0, period)
-    return k, timeline.phase(tau)
-
-
-def _theta(t, k0, k1, period, timeline):
-    k, phi = _cycle_and_phase(t, k0, k1, period, timeline)
-    return 2 * math.pi * k / timeline.n_legs + phi
-
-
-def _hub_acceleration(t, k0, k1, period, timeline, chunk_params, batch) -> np.ndarray:
-    """Hub vertical acceleration zH'' [m/s^2] (z up, gravity-free) at times ``t``."""
-    k, phi = _cycle_and_phase(t, k0, k1, period, timeline)
-    out = np.empty_like(t)
+def _hub_acceleration(k, phi, k0, schedule: _Schedule, chunk_params, batch) -> np.ndarray:
+    """Hub vertical acceleration zH'' [m/s^2] (z up, gravity-free) at cycles ``k`` and phases ``phi`` [rad]."""
+    out = np.empty(phi.shape)
     rigid = phi < 0.0
-    # rigid half: z = l cos(phi), z'' = -l (cos(phi) w^2 + sin(phi) w dw/dphi)
-    leg = np.array([p.lS - p.MH * p.g / p.kS for p in chunk_params])[k[rigid] - k0]
-    pr = phi[rigid]
-    w = timeline.omega(pr)
-    out[rigid] = -leg * (np.cos(pr) * w * w + np.sin(pr) * w * timeline.domega_dphi(pr))
-    # stick-slip half: the stance waveform of the cycle, by phase
-    for j in range(k1 - k0):
+    # rigid half: z = l cos(phi), z'' = -l (cos(phi) w^2 + sin(phi) w dw/dphi), at each cycle's own leg speed
+    for j in range(len(chunk_params)):
+        p = chunk_params[j]
+        tl = schedule.timelines[k0 + j]
+        sel = rigid & (k == k0 + j)
+        if sel.any():
+            pr = phi[sel]
+            w = tl.omega(pr)
+            out[sel] = -(p.lS - p.MH * p.g / p.kS) * (np.cos(pr) * w * w + np.sin(pr) * w * tl.domega_dphi(pr))
+        # stick-slip half: the stance waveform of the cycle, by phase
         sel = (~rigid) & (k == k0 + j)
-        if not sel.any():
-            continue
-        m = int(batch.n_steps[j])
-        out[sel] = np.interp(phi[sel], batch.theta[j, :m], batch.az[j, :m])
+        if sel.any():
+            m = int(batch.n_steps[j])
+            out[sel] = np.interp(phi[sel], batch.theta[j, :m], batch.az[j, :m])
     return out
 
 

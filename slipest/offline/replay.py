@@ -37,6 +37,7 @@ from typing import Callable
 
 import numpy as np
 
+from slipest.io.device_stream import STUCK_TIME
 from slipest.io.log_csv import LogFormatError, LogReader
 from slipest.io.rosbag import BagTopics
 from slipest.online import SlipEstimator
@@ -61,7 +62,8 @@ class ReplayOptions:
     log's reference (needs one).  ``carry_reference``: put the reference on the estimates
     (``slip_ref``) without comparing.  ``skip_bad``: count and skip malformed CSV rows.  ``log_format``:
     ``"auto"`` or one of :data:`~slipest.offline.logs.KINDS`.  ``wheels``: CAN wheels to estimate (None:
-    all).  ``stuck_samples``: see :class:`~slipest.io.device_stream.WheelStream`.  ``bag``: where the
+    all).  ``stuck_time`` [s] (default 20 ms, as live) or ``stuck_samples`` (a fixed run length; 0:
+    never): see :class:`~slipest.io.device_stream.WheelStream`.  ``bag``: where the
     samples are in a ROS 2 bag.  ``chunk_rows``: samples per push (memory)."""
 
     legs: int | None = None
@@ -74,7 +76,8 @@ class ReplayOptions:
     skip_bad: bool = False
     log_format: str = "auto"
     wheels: tuple | None = None
-    stuck_samples: int = 50
+    stuck_time: float = STUCK_TIME
+    stuck_samples: int | None = None
     bag: BagTopics = BagTopics()
     chunk_rows: int = 65536
 
@@ -144,6 +147,7 @@ class WheelTally:
     last_ok: object = None
     estimator_counters: dict = field(default_factory=dict)
     stream_counters: dict = field(default_factory=dict)
+    hints: dict = field(default_factory=dict)
 
     def add(self, e) -> None:
         self.cycles += 1
@@ -202,7 +206,24 @@ class ReplayResult:
                 + (" (" + ", ".join(f"{k[len('flagged_'):]} {v}" for k, v in c.items() if k.startswith("flagged_"))
                    + ")" if c.get("cycles_flagged") else "")
                 + f"; method {o.method}, {self.legs} legs"
-                + (f", reference slip used on {c.get('reference_used', 0)} cycles" if o.use_reference else ""))
+                + (f", reference slip used on {c.get('reference_used', 0)} cycles" if o.use_reference else "")
+                + (f"; IMU noise {c['noise_g']:.4f} g" if c.get("noise_g", math.nan) == c.get("noise_g") else "")
+                + (f"; {c['cycles_misfit']} estimated cycle(s) the model did not explain (intervals widened)"
+                   if c.get("cycles_misfit") else ""))
+
+    @staticmethod
+    def _advice_lines(prefix: str, w: "WheelTally") -> list[str]:
+        """What looks wrong with a wheel's data, and a model that does not fit it, for people."""
+        c = w.estimator_counters
+        lines = [f"replay: {prefix}the input looks wrong: {text}" for text in w.hints.values()]
+        ok = c.get("cycles_ok", 0)
+        if ok and c.get("cycles_misfit", 0) >= max(3, 0.2 * ok):
+            lines.append(f"replay: {prefix}the model does not explain {c['cycles_misfit']} of {ok} estimated cycles: "
+                         "this rover or soil differs from the simulator (the intervals were widened; "
+                         "docs/estimator.md says what misfit means)")
+        if w.cycles and not w.estimated:
+            lines.append(f"replay: {prefix}no leg cycle was estimated (the flagged reasons above say why)")
+        return lines
 
     def summary_lines(self) -> list[str]:
         """The replay's summary, for people (stderr): what was read, cycles estimated and flagged (and
@@ -234,6 +255,8 @@ class ReplayResult:
                              f"out, {s['in_joint_gap']} in joint-state gaps (not estimated)"
                              + (f"; {s['slip_messages']} reference slips" if o.bag.slip else ""))
             lines.append("replay: " + self._cycles_line(c))
+        for wheel, w in sorted(self.wheels.items(), key=lambda kv: -1 if kv[0] is None else kv[0]):
+            lines += self._advice_lines("" if wheel is None else f"wheel {wheel}: ", w)
         if self.estimator_errors:
             lines.append(f"replay: the estimator failed on {self.estimator_errors} push(es) (their cycles are "
                          f"missing); last: {self.last_error}")
@@ -352,12 +375,14 @@ class Replay:
         est = self._estimator(None)
         tally = self._tally()
         pass_ref = self.options.pass_reference
-        for ch in self._reader.iter_chunks(self.options.chunk_rows):
-            for e in est.push_many(ch.t, ch.az, ch.theta, ch.slip if pass_ref else None):
-                tally.add(e)
-                if on_estimate is not None:
-                    on_estimate(None, e)
+        chunks = ((ch.t, ch.az, ch.theta, ch.slip if pass_ref else None)
+                  for ch in self._reader.iter_chunks(self.options.chunk_rows))
+        for e in est.iter_estimates(chunks):
+            tally.add(e)
+            if on_estimate is not None:
+                on_estimate(None, e)
         tally.estimator_counters = est.counters
+        tally.hints = est.hints
         source = self._reader.counters() if self.kind == "ros2" else {}
         return {None: tally}, source
 
@@ -379,7 +404,7 @@ class Replay:
         # (slip_ref) when pass_reference, as the live runtime hands them on with its use_reference
         live = LiveEstimation(self._reader, n_legs=self.legs, use_reference=o.pass_reference,
                               wheels=list(o.wheels) if o.wheels else None, stuck_samples=o.stuck_samples,
-                              on_estimate=collect, estimator_factory=self._estimator)
+                              stuck_time=o.stuck_time, on_estimate=collect, estimator_factory=self._estimator)
         try:
             for batches in self._reader.batches():
                 live.feed(batches)
@@ -389,6 +414,7 @@ class Replay:
         for wheel, st in live.wheels.items():
             tally = tallies.setdefault(wheel, self._tally())
             tally.estimator_counters = st.estimator.counters
+            tally.hints = getattr(st.estimator, "hints", {})
             tally.stream_counters = counters[f"wheel{wheel}"]
         self.estimator_errors, self.last_error = counters["estimator_errors"], live.last_error
         return tallies, self._reader.counters()

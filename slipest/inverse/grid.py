@@ -1,0 +1,160 @@
+"""The grid the inversions run on: soil cells, slip nodes, and the whitened feature tables (pure computation).
+
+* :class:`SoilGrid`: cells of ``(kS, phiS, dphi)`` [N/m, rad, rad] on level
+  axes, those with ``phiD = phiS - dphi >= phid_min``;
+* :data:`SLIP_NODES`, :func:`slip_prior`: the slip nodes [-] and their log prior;
+* :class:`GridTables`: for one :class:`~slipest.inverse.surrogate.FeatureSurrogate`,
+  the mean features of every cell at every slip node, whitened by the
+  model's covariance, for a leg speed and a smoothed noise level, as
+  columnar ``(D, K, S)`` float32 tables (coordinate, slip node, cell: the
+  layout of :mod:`slipest.inverse.grid_kernels`). The speed and the noise
+  are binned (1 % and 5 % steps) and a few tables are kept, so a run at a
+  steady speed builds one table (about 0.1 s) and a run whose speed
+  changes builds one per change; one set of tables serves every wheel
+  using the same model and grid (:func:`grid_tables`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Slip nodes of the grid inversions [-]: 0 to 0.55 by 0.01.
+SLIP_NODES = np.round(np.arange(0.0, 0.5501, 0.01), 6)
+
+
+def slip_prior(nodes, hi: float = 0.5, tail: float = 4.0) -> np.ndarray:
+    """Log prior over slip nodes: flat on ``[0, hi]``, ``-tail`` above (the estimator's range is 0-0.5)."""
+    nodes = np.asarray(nodes, dtype=float)
+    return np.where(nodes <= hi + 1e-9, 0.0, -float(tail))
+
+
+@dataclass(frozen=True)
+class SoilGrid:
+    """Soil cells: levels of kS [N/m], phiS [rad], dphi [rad]; the cells with ``phiS - dphi >= phid_min`` [rad]."""
+
+    kS: np.ndarray
+    phiS: np.ndarray
+    dphi: np.ndarray
+    phid_min: float = 0.1
+
+    @classmethod
+    def default(cls) -> "SoilGrid":
+        """11 x 24 x 31 levels: kS 500-1500 N/m (100 apart), phiS 0.10-0.867 rad (1/30 apart), dphi 0-0.35 rad
+        (0.0117 apart), ``phiD >= 0.10`` rad: 6226 cells. The ``dphi`` axis is the finest: one cycle pins the
+        oscillation amplitude, which ``dphi`` sets, more sharply than ``kS`` or ``phiS`` (docs/estimator.md)."""
+        return cls(np.linspace(500.0, 1500.0, 11), 0.1 + np.arange(24) / 30.0, np.linspace(0.0, 0.35, 31), 0.1)
+
+    @property
+    def mask(self) -> np.ndarray:
+        """``(nk, nphiS, ndphi)`` True where the cell exists (``phiS - dphi >= phid_min``)."""
+        valid = self.phiS[:, None] - self.dphi[None, :] >= self.phid_min - 1e-9
+        return np.broadcast_to(valid[None], (self.kS.size,) + valid.shape)
+
+    @property
+    def size(self) -> int:
+        return int(self.mask.sum())
+
+    def cells(self) -> np.ndarray:
+        """``(S, 3)``: kS [N/m], phiS, phiD [rad] of every cell (C order over the levels)."""
+        k, p, d = np.meshgrid(self.kS, self.phiS, self.dphi, indexing="ij")
+        m = self.mask
+        return np.column_stack([k[m], p[m], (p - d)[m]])
+
+    def steps(self) -> np.ndarray:
+        """Level spacing of (kS, phiS, dphi)."""
+        return np.array([np.ptp(v) / max(v.size - 1, 1) for v in (self.kS, self.phiS, self.dphi)])
+
+    def key(self) -> tuple:
+        return (self.kS.tobytes(), self.phiS.tobytes(), self.dphi.tobytes(), self.phid_min)
+
+
+@dataclass(frozen=True)
+class Table:
+    """One whitened table: ``columnar`` ``(D, K, S)`` float32 (``D`` the modelled features padded to a
+    multiple of 8), ``whitener`` ``(d, D)`` (features minus the table's values, times it, are standard
+    normal in every coordinate), and the binned leg speed [rad/s] and smoothed noise [g] it is for."""
+
+    columnar: np.ndarray
+    whitener: np.ndarray
+    omega: float
+    noise_smooth: float
+
+
+#: Relative width of the leg-speed and smoothed-noise bins of the tables [-].
+OMEGA_STEP = 0.01
+NOISE_STEP = 0.05
+#: Smallest smoothed noise a table is built for [g] (below it, the model's noise-free figures).
+NOISE_FLOOR = 2e-4
+
+
+class GridTables:
+    """Whitened tables of one model on one grid and slip nodes, per (leg speed, noise) bin (see the module docstring).
+
+    ``max_tables``: how many are kept (least recently used goes first).
+    """
+
+    def __init__(self, model, grid: SoilGrid, nodes=SLIP_NODES, max_tables: int = 4):
+        self.model = model
+        self.grid = grid
+        self.nodes = np.asarray(nodes, dtype=float)
+        self.max_tables = int(max_tables)
+        self._tables: OrderedDict = OrderedDict()
+        self.builds = 0
+
+    @staticmethod
+    def bin_of(omega: float, noise_smooth: float) -> tuple[int, int]:
+        """The bin of a leg speed [rad/s] and a smoothed noise [g] (log-spaced)."""
+        return (int(round(math.log(omega) / math.log1p(OMEGA_STEP))),
+                int(round(math.log(max(noise_smooth, NOISE_FLOOR)) / math.log1p(NOISE_STEP))))
+
+    def get(self, omega: float, noise_smooth: float) -> Table:
+        """The table of the bin holding ``omega`` [rad/s] and ``noise_smooth`` [g] (built on first use)."""
+        key = self.bin_of(omega, noise_smooth)
+        table = self._tables.get(key)
+        if table is None:
+            table = self._build(math.exp(key[0] * math.log1p(OMEGA_STEP)), math.exp(key[1] * math.log1p(NOISE_STEP)))
+            self._tables[key] = table
+            if len(self._tables) > self.max_tables:
+                self._tables.popitem(last=False)
+        else:
+            self._tables.move_to_end(key)
+        return table
+
+    def _build(self, omega: float, noise_smooth: float) -> Table:
+        g = self.grid
+        mu = self.model.mean_on_grid(self.nodes, g.kS, g.phiS, g.dphi, omega, noise_smooth)  # (nk, np, nd, K, d)
+        mu = mu[g.mask]  # (S, K, d)
+        r = self.model.cov(omega, noise_smooth)
+        w = np.linalg.cholesky(np.linalg.inv(r))  # w w^T = R^-1
+        d = w.shape[0]
+        dpad = int(math.ceil(d / 8) * 8)
+        whitener = np.zeros((d, dpad))
+        whitener[:, :d] = w
+        columnar = np.zeros((dpad, self.nodes.size, mu.shape[0]), dtype=np.float32)
+        columnar[:d] = np.ascontiguousarray((mu @ w).transpose(2, 1, 0))
+        columnar.flags.writeable = False
+        self.builds += 1
+        return Table(columnar, whitener, omega, noise_smooth)
+
+
+_REGISTRY: dict = {}
+
+
+def grid_tables(model, grid: SoilGrid, nodes=SLIP_NODES) -> GridTables:
+    """The :class:`GridTables` of a model (the object itself), a grid and slip nodes, shared by every caller."""
+    nodes = np.asarray(nodes, dtype=float)
+    key = (id(model), grid.key(), nodes.tobytes())
+    hit = _REGISTRY.get(key)
+    if hit is not None and hit.model is model:
+        return hit
+    if len(_REGISTRY) >= 8:
+        _REGISTRY.clear()
+    tables = _REGISTRY[key] = GridTables(model, grid, nodes)
+    return tables
+
+
+__all__ = ["SLIP_NODES", "slip_prior", "SoilGrid", "Table", "GridTables", "grid_tables"]
