@@ -65,7 +65,7 @@ import numpy as np
 
 from slipest.cycle_estimator import CycleEstimate
 from slipest.despike import outliers
-from slipest.features import _sample_noise, INDEX, cycle_features, sample_noise
+from slipest.features import INDEX, cycle_features, sample_noise
 from slipest.inverse.base import Soil
 from slipest.segmentation import CycleSegmenter
 from slipest.units import G
@@ -87,6 +87,8 @@ def _window_speed(t, theta_phase, half: float) -> float:
     i0, i1 = int(inside[0]), int(inside[-1])
     span = float(t[i1] - t[i0])
     return float(theta_phase[i1] - theta_phase[i0]) / span if span > 0 else math.nan
+
+
 #: Mean ``az`` over a cycle's rigid half [g] outside of which the input's units or axis are taken as wrong
 #: (the hub's own acceleration there is a few hundredths of g; a tilted IMU reads cos(tilt)).
 GRAVITY_RANGE = (0.8, 1.2)
@@ -393,9 +395,10 @@ class SlipEstimator:
         if math.isfinite(gravity) and not GRAVITY_RANGE[0] <= gravity <= GRAVITY_RANGE[1]:
             self._hints.setdefault("units", _units_hint(gravity))
             return self._flagged(cyc, "units", ref)
-        measured = float(_sample_noise(ph, az, half)) / G
-        if math.isfinite(measured):
-            self._noises.append(measured)
+        if self.noise is None:  # measured only when not given (noise_estimate then ignores the measures)
+            measured = sample_noise(ph, az, n_legs=self.n_legs)
+            if math.isfinite(measured):
+                self._noises.append(measured)
         noise = self.noise_estimate
         try:
             f = cycle_features(ph, az, tt, n_legs=self.n_legs, noise=noise if math.isfinite(noise) else None)

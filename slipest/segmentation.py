@@ -118,6 +118,12 @@ _FLAGS = tuple(tuple(f for b, f in enumerate(QUALITY_PRIORITY) if bits >> b & 1)
 _DONE, _EMITTED, _FULL = 0, 1, 2
 
 
+@numba.njit(cache=True, inline="always")
+def _hole_flags(why):
+    """The flags of a hole made by unusable samples of the kinds ``why`` (bit 0: NaN ``az``, bit 1: saturated)."""
+    return (_F_NAN if why & 1 else 0) | (_F_SATURATED if why & 2 else 0)
+
+
 @numba.njit(cache=True)
 def _window_checks(t, az, ph, has_pre, pre_t, pre_ph, has_post, post_t, post_ph, max_gap, gap_factor, max_dtheta,
                    stop_dtheta, stop_time, full_scale, clip_values):
@@ -193,23 +199,23 @@ def _window_checks(t, az, ph, has_pre, pre_t, pre_ph, has_post, post_t, post_ph,
                 if d > 1.5 * med:
                     n_missing += int(round(d / med)) - 1
             last = -1  # the last usable sample
-            why = 0
+            why = 0  # the kinds (bits 1 << (bad - 1)) of the unusable samples since it
             for i in range(m):
                 if bad[i]:
                     why |= 1 << (bad[i] - 1)
                     continue
                 if last >= 0 and ts[i] - ts[last] > limit:
-                    bits |= (_F_NAN if why & 1 else 0) | (_F_SATURATED if why & 2 else 0) | (0 if why else _F_GAP)
+                    bits |= _hole_flags(why) if why else _F_GAP
                 last = i
                 why = 0
             if last >= 0 and why:  # unusable samples to the end of the span: a hole from the last usable one
                 if ts[m - 1] - ts[last] > limit:
-                    bits |= (_F_NAN if why & 1 else 0) | (_F_SATURATED if why & 2 else 0)
+                    bits |= _hole_flags(why)
             elif last < 0:  # nothing usable
-                bits |= (_F_NAN if why & 1 else 0) | (_F_SATURATED if why & 2 else 0)
+                bits |= _hole_flags(why)
         elif n_bad == n:  # nothing usable in the window
             for i in range(n):
-                bits |= _F_NAN if bad[a0 + i] == 1 else _F_SATURATED
+                bits |= _hole_flags(1 << (bad[a0 + i] - 1))
         # stopped: from a sample, theta's running maximum takes more than stop_time to rise by stop_dtheta
         thr = np.empty(m)
         run = -np.inf
@@ -226,7 +232,7 @@ def _window_checks(t, az, ph, has_pre, pre_t, pre_ph, has_post, post_t, post_ph,
                 bits |= _F_STOPPED
                 break
     elif n_bad:  # one sample, unusable
-        bits |= _F_NAN if bad[a0] == 1 else _F_SATURATED
+        bits |= _hole_flags(1 << (bad[a0] - 1))
     return bits, n_missing
 
 

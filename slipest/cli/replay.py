@@ -115,8 +115,8 @@ def options_from_args(args):
     return ReplayOptions(legs=args.legs, method=args.method, soil=soil_from_args(args) or None, model=args.model,
                          use_reference=args.use_reference, truth=args.truth, carry_reference=bool(args.plot),
                          skip_bad=args.skip_bad, log_format=args.log_format,
-                         wheels=tuple(args.wheel) if args.wheel else None, stuck_samples=args.stuck_samples, stuck_time=args.stuck_time, bag=bag,
-                         chunk_rows=args.chunk_rows)
+                         wheels=tuple(args.wheel) if args.wheel else None, stuck_samples=args.stuck_samples,
+                         stuck_time=args.stuck_time, bag=bag, chunk_rows=args.chunk_rows)
 
 
 class _Writer:
