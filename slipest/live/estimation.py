@@ -104,7 +104,6 @@ class LiveEstimation:
         self.recorder = (Recording(record or (), source=source, n_legs=n_legs, frames=record_frames,
                                    overwrite=overwrite) if record or record_frames else None)
         self._sample_listeners: list[Callable] = []
-        self._estimate_listeners: list[Callable] = []
         self.wheels: dict[int, WheelState] = {}
         self.c = {"frames_ignored_wheel": 0, "estimates": 0, "cycles_flagged": 0, "estimator_errors": 0}
         self._intake_latency: list[np.ndarray] = []
@@ -115,14 +114,21 @@ class LiveEstimation:
 
     def add_listener(self, *, on_samples: Callable | None = None, on_estimate: Callable | None = None) -> None:
         """Also call ``on_samples(wheel, samples)`` with each wheel's samples (a
-        :class:`~slipest.io.device_stream.WheelSamples`, after they were estimated from) and
-        ``on_estimate(wheel, estimate, info)`` after the estimate callback.  Both run in the loop's
-        thread: they must be quick (hand the work to a thread of their own, as
-        :class:`~slipest.live.view.LiveView` does) and must not keep or change the arrays."""
+        :class:`~slipest.io.device_stream.WheelSamples`, as the recording gets them, before the
+        estimator does) and ``on_estimate(wheel, estimate, info)`` after the estimate callback (it
+        becomes part of :attr:`on_estimate`).  Both run in the loop's thread: they must be quick (hand
+        the work to a thread of their own, as :class:`~slipest.live.view.LiveView` does) and must not
+        keep or change the arrays."""
         if on_samples is not None:
             self._sample_listeners.append(on_samples)
         if on_estimate is not None:
-            self._estimate_listeners.append(on_estimate)
+            first = self.on_estimate
+
+            def both(wheel, est, info):
+                first(wheel, est, info)
+                on_estimate(wheel, est, info)
+
+            self.on_estimate = both
 
     def warmup(self) -> float:
         """Get the estimator's one-time costs (loading the model, compiled
@@ -240,6 +246,8 @@ class LiveEstimation:
             return
         if self.recorder is not None:
             self.recorder.add(wheel, s)
+        for listener in self._sample_listeners:
+            listener(wheel, s)
         try:
             est = st.estimator
             if len(s) <= _PUSH_ONE_BY_ONE:
@@ -253,7 +261,7 @@ class LiveEstimation:
         except (ValueError, FloatingPointError) as exc:  # never let one bad cycle stop the stream
             self.c["estimator_errors"] += 1
             self.last_error = f"wheel {wheel}: {type(exc).__name__}: {exc}"
-            estimates = []
+            return
         now = time.monotonic()
         for est in estimates:
             st.cycles_seen += 1
@@ -271,12 +279,7 @@ class LiveEstimation:
             latency = now - intake if intake == intake else math.nan
             if latency == latency:
                 self._estimate_latency.append(latency)
-            info = {"intake": intake, "latency": latency, "ready": now}
-            self.on_estimate(wheel, est, info)
-            for listener in self._estimate_listeners:
-                listener(wheel, est, info)
-        for listener in self._sample_listeners:
-            listener(wheel, s)
+            self.on_estimate(wheel, est, {"intake": intake, "latency": latency, "ready": now})
 
     def flush(self, force: bool = False) -> None:
         """Write the recording's buffered samples (every 0.1 s at most unless ``force``)."""
