@@ -94,12 +94,12 @@ class FoxgloveClient:
                         continue
                     try:
                         msg = await asyncio.wait_for(ws.recv(), 0.05)
+                        await self._handle(ws, msg)
                     except asyncio.TimeoutError:
                         continue
-                    except websockets.ConnectionClosed:
+                    except websockets.ConnectionClosed:  # (also while subscribing: the server stopped)
                         self.closed_by_server = True
                         return
-                    await self._handle(ws, msg)
         except BaseException as exc:  # raised again by close()
             self.error = exc
             self.ready.set()

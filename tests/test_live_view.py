@@ -137,7 +137,7 @@ def test_a_foxglove_client_gets_the_estimates_and_the_decimated_samples_the_esti
 
 
 def test_a_viewer_that_stops_reading_slows_nothing_down(tmp_path):
-    """A viewer subscribes to everything and stops reading (its socket buffer shrunk) for 1.5 s while the
+    """A viewer subscribes to everything and stops reading (its socket buffer shrunk) for 1 s while the
     device streams at 20x over a pty: the server drops that viewer's backlog, the estimator loses no frame
     and estimates every cycle, and no sample waits long to be taken in; a reading viewer gets everything."""
     report = tmp_path / "live.json"
@@ -153,7 +153,7 @@ def test_a_viewer_that_stops_reading_slows_nothing_down(tmp_path):
         reading = FoxgloveClient(vport)
         assert stalled.ready.wait(10) and reading.ready.wait(10)
         assert stalled.stalled.wait(30)
-        time.sleep(1.5)  # 30 s of device data meanwhile
+        time.sleep(1.0)  # 20 s of device data meanwhile (the backlog holds 1024 messages: 5 s)
         stalled.resume()  # read again while the run goes on: what did the server keep?
         assert est.wait(90) == 0, est.stderr
         dev.wait(30)
@@ -170,13 +170,21 @@ def test_a_viewer_that_stops_reading_slows_nothing_down(tmp_path):
     got_reading = [decode(ch, data)["t"] for _, data in reading.of("/slipest/wheel0/imu")]
     got_stalled = [decode(ch, data)["t"] for _, data in stalled.of("/slipest/wheel0/imu")]
     assert len(got_reading) >= published - 50  # (what came before it subscribed)
-    # the server dropped what the stalled viewer did not read (it keeps the newest, up to its backlog), and
-    # the viewer, reading again, was served from there on, to the end, without a hole
-    skipped = math.floor(got_stalled[0] * RATE) - math.floor(got_reading[0] * RATE)
-    assert len(got_stalled) < 0.8 * published and skipped > 0.2 * published
-    assert np.all(np.diff(np.floor(np.array(got_stalled) * RATE)) == 1) and got_stalled[-1] == got_reading[-1]
+    # the server dropped what the stalled viewer did not read (it keeps the newest, up to its backlog): one
+    # hole, counted from the reading viewer's first message (a few messages may have reached the stalled
+    # viewer's socket before it stopped reading: those come before the hole; up to 50 missing at the start
+    # are the subscription's lag, as for the reading viewer); reading again, it was served to the end
+    buckets = np.floor(np.r_[got_reading[0], got_stalled] * RATE).astype(np.int64)
+    steps = np.diff(buckets) - 1  # intervals missing before each message of the stalled viewer
+    steps[0] += 1  # (the reading viewer's first may be missing too)
+    skipped = int(steps.sum())
+    detail = (f"published {published}, reading {len(got_reading)}, stalled {len(got_stalled)}, missing before "
+              f"message i: {[(i, int(d)) for i, d in enumerate(steps) if d][:10]}")
+    assert np.all(steps >= 0), detail  # in order, none twice
+    assert len(got_stalled) < 0.8 * published and skipped > 0.2 * published and steps.max() > skipped - 50, detail
+    assert got_stalled[-1] == got_reading[-1], detail  # served to the end
     lat = live["latency"]
-    print(f"\nstalled viewer: {len(got_stalled)} of {published} imu messages, the first {skipped} dropped; "
+    print(f"\nstalled viewer: {len(got_stalled)} of {published} imu messages, {skipped} dropped; "
           f"reading viewer {len(got_reading)}; device->intake median {lat['device_to_intake']['median_ms']:.2f} ms, "
           f"p99 {lat['device_to_intake']['p99_ms']:.2f} ms, max {lat['device_to_intake']['max_ms']:.2f} ms; "
           f"intake->estimate p99 {lat['intake_to_estimate']['p99_ms']:.2f} ms")

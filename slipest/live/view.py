@@ -338,13 +338,21 @@ class LiveView:
         ``queue_dropped`` and ``errors`` (items the view failed to publish; the last: :attr:`last_error`)."""
         return dict(self.c)
 
-    def close(self, timeout: float = 5.0) -> None:
-        """Publish what is queued (up to ``timeout`` s), then stop the server (idempotent)."""
+    def close(self, timeout: float = 5.0, linger: float = 0.25) -> None:
+        """Publish what is queued (up to ``timeout`` s), give the server ``linger`` s to send it to the
+        viewers (foxglove-sdk has no flush: stopping it drops what it still holds for a client), then
+        stop the server (idempotent).  What the view's thread did not publish within ``timeout`` is
+        counted in ``errors`` (:attr:`last_error` says how many items)."""
         if self._stopped:
             return
         self._stopped = True
         self._stop.set()
         self._thread.join(timeout)
+        if self._thread.is_alive():
+            self.c["errors"] += 1
+            self.last_error = f"the view's thread was still publishing after {timeout:g} s; stopped the server"
+        elif linger > 0:
+            time.sleep(linger)
         self.server.stop()
 
     def __enter__(self) -> "LiveView":
