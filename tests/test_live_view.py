@@ -191,11 +191,14 @@ def test_a_viewer_that_stops_reading_slows_nothing_down(tmp_path):
     assert lat["device_to_intake"]["max_ms"] < 1000  # never held up (a blocked publisher would hold frames for seconds)
 
 
-def test_the_demo_shows_its_truth_beside_the_estimates():
+def test_the_demo_shows_its_truth_beside_the_estimates_and_its_notices():
+    """``slipest demo --faults --view``: the truth of every cycle on its own topic, the estimates of the intact
+    cycles near it, the damaged ones (a dropped frame, corrupted bytes, a stuck sensor) not estimated, and the
+    link's notices (the disconnection) on /slipest/log."""
     from slipest.cli.demo import DEMO_SCENARIO
 
     with Stopping() as procs:
-        demo = procs.add(slipest_cmd("demo", "--speed", "20", "--cycles", "5", "--view", "0"))
+        demo = procs.add(slipest_cmd("demo", "--speed", "20", "--cycles", "6", "--faults", "--view", "0"))
         client = FoxgloveClient(int(demo.wait_line(r"live view on ws://127\.0\.0\.1:(\d+)", 60).group(1)))
         assert client.ready.wait(10)
         assert demo.wait(120) == 0, demo.stderr
@@ -203,14 +206,19 @@ def test_the_demo_shows_its_truth_beside_the_estimates():
     ch = client.channel("/slipest/demo/truth")
     truth = {m["cycle"]: m for m in (decode(ch, data) for _, data in client.of("/slipest/demo/truth"))}
     seg = DEMO_SCENARIO["segment"][0]
-    assert set(range(1, 5)) <= set(truth)
+    assert set(range(5)) <= set(truth)
     for m in truth.values():
         assert (m["slip"], m["kS"], m["phiS"], m["phiD"]) == (seg["slip"], seg["kS"], seg["phiS"], seg["phiD"])
         assert m["dphi"] == pytest.approx(seg["phiS"] - seg["phiD"], abs=1e-12)
     ch = client.channel("/slipest/wheel0/estimate")
     shown = {m["cycle"]: m for m in (decode(ch, data) for _, data in client.of("/slipest/wheel0/estimate"))}
-    assert all(shown[k]["quality"] == "ok" and abs(shown[k]["slip"] - seg["slip"]) < 4 * shown[k]["slip_std"]
-               for k in range(1, 5))
+    assert all(shown[k]["quality"] != "ok" and shown[k]["slip"] is None for k in (1, 2, 3))  # the faults' cycles
+    assert shown[4]["quality"] == "ok"
+    assert all(abs(m["slip"] - seg["slip"]) < 4 * m["slip_std"] for m in shown.values() if m["quality"] == "ok")
+    ch = client.channel("/slipest/log")
+    logs = [decode(ch, data) for _, data in client.of("/slipest/log")]
+    assert any(x.message.startswith("slipest demo: ") and "disconnected" in x.message and x.level == 3
+               for x in logs), [x.message for x in logs]  # 3: WARNING
 
 
 def test_without_foxglove_the_option_says_what_to_install(tmp_path):

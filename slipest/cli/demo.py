@@ -306,7 +306,7 @@ def run(args: argparse.Namespace) -> int:
                 return "the device finished"
             return _GAVE_UP if quiet > 30 else None
 
-        result = run_live(source, live, StopConditions(until=device_done))
+        result = run_live(source, live, StopConditions(until=device_done), on_notice=_notices_to(view))
         if result.interrupted:
             print("\nslipest demo: interrupted", file=out)
         elif result.reason == _GAVE_UP:
@@ -361,6 +361,20 @@ def _publish_truth(view, scenario, est) -> None:
         view.publish("/slipest/demo/truth", {"cycle": k, "slip": float(c.slip), "dphi": float(c.phiS - c.phiD),
                                              "kS": float(c.kS), "phiS": float(c.phiS), "phiD": float(c.phiD)},
                      TRUTH_SCHEMA)
+
+
+def _notices_to(view):
+    """``run_live``'s ``on_notice`` for the demo: logged at INFO (as without a view) and, with a view, also
+    on its ``/slipest/log``; None (``run_live``'s default) without a view."""
+    if view is None:
+        return None
+    import logging
+
+    def notice(text: str) -> None:
+        logging.getLogger("slipest.demo").info("%s", text)
+        view.notice(f"slipest demo: {text}")
+
+    return notice
 
 
 def _fault_args(bus: str, period: float, n_cycles: int) -> list[str]:
