@@ -7,12 +7,16 @@ wheel-leg, prints one row per leg cycle as it closes (the columns of
 cycle back on the bus (``--no-publish`` to only listen).  Bus errors and a
 dead socketcand server are reported and the bus reconnected; unknown IDs and
 bad frames are counted and skipped; a cycle that lost a message is flagged,
-never estimated.  Counters at exit and on SIGUSR1.
+never estimated.  Counters at exit and on SIGUSR1.  ``--record drive.blf``
+(or ``.asc``, ``.log``...) records every frame received in a python-can
+log, which ``slipest replay`` turns into the same estimates; ``--view
+PORT`` shows the run live in Foxglove (docs/live-view.md).
 
 Examples::
 
     slipest can -i socketcan -c vcan0
     slipest can -i socketcand -c can0 --bus-option host=127.0.0.1 --bus-option port=29536
+    slipest can -i socketcan -c can0 --record drive.blf --view 8765
 """
 
 from __future__ import annotations
@@ -30,12 +34,12 @@ def add_parser(sub) -> None:
                     "estimate slip live from a CAN bus (DBC messages) and publish the estimates on it", __doc__)
     add_bus_arguments(p)
     p.add_argument("--no-publish", action="store_true", help="do not send SlipEstimate messages")
-    add_live_arguments(p, "the bus")
+    add_live_arguments(p, "the bus", frames=True)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from slipest.cli.live_args import live_from_args, make_printer, run_command
+    from slipest.cli.live_args import live_from_args, make_printer, run_command, view_from_args
     from slipest.io.bus_args import bus_config_from_args
     from slipest.io.can_source import CanSource
 
@@ -52,4 +56,5 @@ def run(args: argparse.Namespace) -> int:
         printer(wheel, est, info)
 
     live = live_from_args(args, source, on_estimate)
-    return run_command("slipest can", args, source, live, f"listening on CAN bus {config.describe()}")
+    view = view_from_args("slipest can", args, live)
+    return run_command("slipest can", args, source, live, f"listening on CAN bus {config.describe()}", view)

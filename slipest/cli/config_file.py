@@ -36,7 +36,7 @@ import os
 import tomllib
 
 #: Options whose value is a path: taken relative to the configuration file's directory.
-PATH_OPTIONS = frozenset({"model", "record", "report"})
+PATH_OPTIONS = frozenset({"model", "record", "record_frames", "report"})
 #: Options a file may give as a table ``{KEY = VALUE}`` (the keywords of the CAN bus).
 TABLE_OPTIONS = frozenset({"bus_option"})
 #: Options a file does not set.
@@ -138,6 +138,8 @@ def load_config_file(path: str, parser: argparse.ArgumentParser) -> dict:
         converted = _convert(action, value, fail)
         if action.dest in PATH_OPTIONS and isinstance(converted, str):
             converted = os.path.join(base, os.path.expanduser(converted))
+        elif action.dest in PATH_OPTIONS and isinstance(converted, list):  # a repeatable path (record)
+            converted = [os.path.join(base, os.path.expanduser(c)) for c in converted]
         if action.dest in out and _is_repeatable(action):  # e.g. both bus-option and bus-kwargs
             converted = out[action.dest] + converted
         out[action.dest] = converted

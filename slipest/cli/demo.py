@@ -13,7 +13,10 @@ About 100 s at real time (40 leg cycles); ``--speed 10`` runs it ten times
 faster, ``--cycles N`` shortens it.  ``--faults`` makes the device misbehave
 (a dropped frame, corrupted bytes or unknown CAN IDs, a stuck sensor, a
 disconnection) to show that the estimator survives, counts them and never
-estimates from damaged cycles.
+estimates from damaged cycles.  ``--view 8765`` also shows the run live in
+Foxglove (``pip install 'slipest[view]'``; docs/live-view.md): the
+estimates, ``az`` and the leg angle, and the truth on
+``/slipest/demo/truth``.
 """
 
 from __future__ import annotations
@@ -58,6 +61,9 @@ def add_parser(sub) -> None:
     p.add_argument("--seed", type=int, default=7, help="seed of the IMU noise (default 7)")
     p.add_argument("--faults", action="store_true", help="inject faults (dropped frame, corruption, stuck sensor, "
                    "disconnection) and show they are counted and never estimated from")
+    from slipest.cli.live_args import add_view_arguments
+
+    add_view_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -212,6 +218,7 @@ def _summary(display: _Display, live, source_counters: dict, device_report: dict
 def run(args: argparse.Namespace) -> int:
     import json
 
+    from slipest.cli.live_args import view_from_args
     from slipest.live import LiveEstimation, StopConditions, run_live
     from slipest.model.scenario import Scenario
 
@@ -237,9 +244,17 @@ def run(args: argparse.Namespace) -> int:
     device_report_path = os.path.join(tmp.name, "device.json")
     code = 0
 
+    view = None
+
     def estimation(on_estimate):
+        nonlocal view
         est = LiveEstimation(source, n_legs=scenario.n_legs, sim_speed=speed or None, on_estimate=on_estimate)
         est.warmup()
+        view = view_from_args("slipest demo", args, est)
+        if view is not None:
+            print(f"slipest demo: live view on {view.url} (in Foxglove: Open connection, Foxglove WebSocket)",
+                  file=out, flush=True)
+            est.add_listener(on_estimate=lambda wheel, e, info: _publish_truth(view, scenario, e))
         return est
 
     try:
@@ -289,7 +304,7 @@ def run(args: argparse.Namespace) -> int:
                 return "the device finished"
             return _GAVE_UP if quiet > 30 else None
 
-        result = run_live(source, live, StopConditions(until=device_done))
+        result = run_live(source, live, StopConditions(until=device_done), on_notice=_notices_to(view))
         if result.interrupted:
             print("\nslipest demo: interrupted", file=out)
         elif result.reason == _GAVE_UP:
@@ -308,6 +323,8 @@ def run(args: argparse.Namespace) -> int:
             child.stop()
         if source is not None:
             source.close()
+        if view is not None:
+            view.close()
         signal.signal(signal.SIGTERM, old_term)
     try:
         report = None
@@ -324,6 +341,38 @@ def run(args: argparse.Namespace) -> int:
     finally:
         tmp.cleanup()
     return code
+
+
+#: JSON schema of ``/slipest/demo/truth``: what the demo's device drove in each leg cycle.
+TRUTH_SCHEMA = {"title": "slipest.DemoTruth", "type": "object", "properties": {
+    "cycle": {"type": "integer"}, "slip": {"type": "number", "description": "true slip [-]"},
+    "dphi": {"type": "number", "description": "true phiS - phiD [rad]"},
+    "kS": {"type": "number", "description": "[N/m]"}, "phiS": {"type": "number", "description": "[rad]"},
+    "phiD": {"type": "number", "description": "[rad]"}}}
+
+
+def _publish_truth(view, scenario, est) -> None:
+    """The truth of the estimate's cycle on the live view (``/slipest/demo/truth``)."""
+    k = int(est.cycle)
+    if 0 <= k < len(scenario.cycles):
+        c = scenario.cycles[k]
+        view.publish("/slipest/demo/truth", {"cycle": k, "slip": float(c.slip), "dphi": float(c.phiS - c.phiD),
+                                             "kS": float(c.kS), "phiS": float(c.phiS), "phiD": float(c.phiD)},
+                     TRUTH_SCHEMA)
+
+
+def _notices_to(view):
+    """``run_live``'s ``on_notice`` for the demo: logged at INFO (as without a view) and, with a view, also
+    on its ``/slipest/log``; None (``run_live``'s default) without a view."""
+    if view is None:
+        return None
+    import logging
+
+    def notice(text: str) -> None:
+        logging.getLogger("slipest.demo").info("%s", text)
+        view.notice(f"slipest demo: {text}")
+
+    return notice
 
 
 def _fault_args(bus: str, period: float, n_cycles: int) -> list[str]:

@@ -4,10 +4,20 @@ The runtime is the library's (:mod:`slipest.live`); this module turns the
 command line into it and prints: the live options (:func:`add_live_arguments`),
 the :class:`~slipest.live.LiveEstimation` they describe
 (:func:`live_from_args`), the estimate rows (:func:`make_printer`), the
-counters for people (:func:`format_counters`), and the run of a command
-around a source (:func:`run_command`: counters at exit and on SIGUSR1, the
-``--report`` JSON, exit code 0 on a normal stop; a second Ctrl-C or SIGTERM
-while it stops is ignored, so the recording and the report are complete).
+counters for people (:func:`format_counters`), the live view
+(:func:`add_view_arguments`, :func:`view_from_args`: ``--view [HOST:]PORT``,
+a Foxglove WebSocket server, :mod:`slipest.live.view`), and the run of a
+command around a source (:func:`run_command`: counters at exit and on
+SIGUSR1, the ``--report`` JSON, exit code 0 on a normal stop; a second
+Ctrl-C or SIGTERM while it stops is ignored, so the recording and the
+report are complete).
+
+``--record FILE`` (repeatable) records by the file's name: a ``.csv`` (or
+any name that is not a python-can log) gets the samples each wheel's
+estimator was given; a python-can log name (``.asc``, ``.blf``, ``.log``,
+``.trc``, ``.db``, ``.mf4``, gzipped text ones) gets the raw CAN frames
+(``slipest can`` only); ``--record-frames FILE`` records the frames
+whatever the suffix (python-can's ``.csv``).
 
 Estimates go to stdout (``--format csv``, ``jsonl`` or ``none``); every
 other message goes through :mod:`logging` to stderr, with time and level
@@ -35,8 +45,9 @@ from slipest.live.loop import StopSignals
 FORMATS = ("csv", "jsonl", "none")
 
 
-def add_live_arguments(p: argparse.ArgumentParser, link: str) -> None:
-    """Options shared by the live commands; ``link``: what ``--wait-open`` opens (for its help)."""
+def add_live_arguments(p: argparse.ArgumentParser, link: str, *, frames: bool = False) -> None:
+    """Options shared by the live commands; ``link``: what ``--wait-open`` opens (for its help);
+    ``frames``: the link delivers CAN frames (``--record-frames``)."""
     p.add_argument("--config", metavar="FILE.toml",
                    help="read options from a TOML file: its keys are this command's long options (e.g. legs = 4, "
                    "wheel = [0, 1], model = \"m.json\"); options on the command line override it")
@@ -57,14 +68,22 @@ def add_live_arguments(p: argparse.ArgumentParser, link: str) -> None:
     stuck.add_argument("--stuck-samples", type=int, default=None, metavar="N",
                        help="a stuck sensor is N bit-identical samples instead (0: off)")
     o = p.add_argument_group("output")
-    o.add_argument("--record", metavar="FILE",
-                   help="record the input to a log CSV (wheel 0: FILE; wheel k: STEM.wheelK.EXT, or FILE with "
-                   "{wheel} replaced); flushed continuously, complete after Ctrl-C or SIGTERM")
+    o.add_argument("--record", metavar="FILE", action="append", default=None,
+                   help="record the input, by the file's name (repeatable): FILE.csv: the samples each estimator "
+                   "got, as a log CSV (wheel 0: FILE; wheel k: STEM.wheelK.EXT, or FILE with {wheel} replaced); a "
+                   "python-can log (.asc, .blf, .log, .trc, .db, .mf4, .asc.gz...): every raw CAN frame received "
+                   "(slipest can), which slipest replay turns into the same estimates; flushed continuously, "
+                   "complete after Ctrl-C or SIGTERM")
+    if frames:
+        o.add_argument("--record-frames", metavar="FILE", action="append", default=None,
+                       help="record every raw CAN frame received to a python-can log, the format by the suffix "
+                       "whatever it is (for python-can's own .csv; repeatable)")
     o.add_argument("--overwrite", action="store_true", help="overwrite existing --record files")
     o.add_argument("--report", metavar="FILE", help="write the counters and latency figures as JSON at exit")
     o.add_argument("--format", choices=FORMATS, default="csv",
                    help="estimates on stdout: csv (default; a header, then one row per leg cycle, wheel first), "
                    "jsonl (one JSON object per line, wheel first), none (not printed)")
+    add_view_arguments(o)
     add_logging_arguments(p)
     s = p.add_argument_group("stopping")
     s.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
@@ -81,6 +100,53 @@ def add_live_arguments(p: argparse.ArgumentParser, link: str) -> None:
                    "faster than this host's")
 
 
+def parse_view_address(text: str) -> tuple[str, int]:
+    """``[HOST:]PORT`` -> (host, port); the host is 127.0.0.1 (this machine only) when omitted; an IPv6
+    host in brackets (``[::1]:8765``).  ``argparse.ArgumentTypeError`` on anything else."""
+    host, sep, port = str(text).strip().rpartition(":")
+    if not sep:
+        host = "127.0.0.1"
+    host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    try:
+        number = int(port)
+    except ValueError:
+        number = -1
+    if not host or not 0 <= number <= 65535:
+        raise argparse.ArgumentTypeError(f"expected [HOST:]PORT (e.g. 8765, 0.0.0.0:8765), got {text!r}")
+    return host, number
+
+
+def add_view_arguments(group) -> None:
+    """``--view [HOST:]PORT`` and ``--view-rate HZ`` (an argument group or parser)."""
+    from slipest.live.view import DEFAULT_PORT, DEFAULT_RATE
+
+    group.add_argument("--view", type=parse_view_address, default=None, metavar="[HOST:]PORT",
+                       help="publish estimates, az and the leg angle to Foxglove over a WebSocket on PORT "
+                       f"(e.g. {DEFAULT_PORT}; 0: any free port; HOST 127.0.0.1 unless given, 0.0.0.0 for every "
+                       "interface); open ws://HOST:PORT in Foxglove; needs pip install 'slipest[view]' "
+                       "(docs/live-view.md)")
+    group.add_argument("--view-rate", type=float, default=DEFAULT_RATE, metavar="HZ",
+                       help=f"az and leg-angle samples per second of device time on the view (default {DEFAULT_RATE:g})")
+
+
+def view_from_args(prog: str, args, live):
+    """The :class:`~slipest.live.view.LiveView` ``--view`` asks for, attached to ``live`` (None without
+    ``--view``); SystemExit naming the extra to install, or why it cannot listen."""
+    if getattr(args, "view", None) is None:
+        return None
+    from slipest.extras import MissingExtra
+    from slipest.live.view import LiveView
+
+    host, port = args.view
+    try:
+        view = LiveView(host, port, rate=args.view_rate)
+    except (MissingExtra, OSError, ValueError) as exc:
+        raise SystemExit(f"{prog}: {exc}") from None
+    logging.getLogger(prog.replace(" ", ".")).info(
+        "live view on %s (Foxglove: Open connection, Foxglove WebSocket, %s)", view.url, view.url)
+    return view.attach(live)
+
+
 def live_from_args(args, source, on_estimate) -> LiveEstimation:
     """The warmed-up :class:`~slipest.live.LiveEstimation` the live options describe for ``source``
     (SystemExit on a bad combination or an existing recording)."""
@@ -89,6 +155,7 @@ def live_from_args(args, source, on_estimate) -> LiveEstimation:
                               use_reference=args.use_reference, model=model_from_args(args), wheels=args.wheel,
                               stuck_samples=args.stuck_samples, stuck_time=args.stuck_time,
                               sim_speed=args.sim_speed, record=args.record,
+                              record_frames=getattr(args, "record_frames", None) or (),
                               overwrite=args.overwrite, on_estimate=on_estimate)
         live.warmup()  # also checks the estimator options (e.g. eq515 without a soil)
     except FileExistsError as exc:
@@ -124,8 +191,10 @@ def format_counters(source: dict, estimation: dict, latency: dict) -> str:
     lines = ["counters:"]
     lines.append("  source: " + ", ".join(f"{k}={v}" for k, v in source.items() if not isinstance(v, dict)))
     lines.append("  estimation: " + ", ".join(f"{k}={v}" for k, v in estimation.items() if not isinstance(v, dict)))
+    for path, fc in estimation.get("frame_logs", {}).items():
+        lines.append(f"  CAN log {path}: " + ", ".join(f"{k}={v}" for k, v in fc.items()))
     for key, wc in estimation.items():
-        if isinstance(wc, dict):
+        if isinstance(wc, dict) and key != "frame_logs":
             flat = {k: v for k, v in wc.items() if not isinstance(v, dict)}
             lines.append(f"  {key}: " + ", ".join(f"{k}={v}" for k, v in flat.items())
                          + (f", qualities={wc['qualities']}" if wc.get("qualities") else ""))
@@ -136,37 +205,56 @@ def format_counters(source: dict, estimation: dict, latency: dict) -> str:
     return "\n".join(lines)
 
 
-def run_command(prog: str, args, source, live: LiveEstimation, started: str) -> int:
+def run_command(prog: str, args, source, live: LiveEstimation, started: str, view=None) -> int:
     """Start ``source`` (``--wait-open``), log ``started``, run until a stop condition, log the
     reason and the counters, write ``--report``.  Returns 0 on a normal stop (duration, cycles,
-    idle, Ctrl-C, SIGTERM); SystemExit when the source cannot be opened or a later wheel's
-    recording exists.  Messages go to the logger named after ``prog`` (``slipest.serial``):
-    the source's notices at WARNING, the rest at INFO.  From the start of the run to the exit, a
-    stop signal after the first is counted (``signals_ignored``) and ignored: the command is exiting."""
+    idle, Ctrl-C, SIGTERM); SystemExit when the source cannot be opened, a later wheel's
+    recording exists or a recording cannot be written.  Messages go to the logger named after
+    ``prog`` (``slipest.serial``): the source's notices at WARNING, the rest at INFO; with a
+    ``view`` (:func:`view_from_args`) also to its ``/slipest/log``, and the view is closed at the
+    end (its counters in the report: ``view``).  From the start of the run to the exit, a stop
+    signal after the first is counted (``signals_ignored``) and ignored: the command is exiting."""
     log = logging.getLogger(prog.replace(" ", "."))
+
+    def say(text: str, level: int = logging.INFO) -> None:
+        log.log(level, "%s", text)
+        if view is not None:
+            view.notice(f"{prog}: {text}", logging.getLevelName(level).lower())
+
     try:
-        source.start(wait_open=args.wait_open)
-    except OSError as exc:
-        raise SystemExit(f"{prog}: {exc}") from None
-    with StopSignals(restore=False) as signals:
-        log.info("%s", started)
-
-        def status():
-            log.info("%s", format_counters(source.counters(), live.counters(), live.latency()))
-
-        stop = StopConditions(duration=args.duration, cycles=args.cycles, idle_timeout=args.idle_timeout)
         try:
-            result = run_live(source, live, stop, signals=signals, on_status=status,
-                              on_notice=lambda text: log.warning("%s", text))
-        except FileExistsError as exc:  # the recording of a wheel that appeared later
-            raise SystemExit(f"{prog}: {exc}; use --overwrite") from None
-        log.info("%s", result.reason)
-        log.info("%s", format_counters(result.source, result.estimation, result.latency))
-        if args.report:
-            report = result.report()
-            report["signals_ignored"] = signals.ignored
-            with open(args.report, "w") as fh:
-                json.dump(report, fh, indent=1, default=str)
-        if signals.ignored:
-            log.info("%d more stop signal(s) ignored while stopping (nothing was lost)", signals.ignored)
+            source.start(wait_open=args.wait_open)
+        except OSError as exc:
+            raise SystemExit(f"{prog}: {exc}") from None
+        with StopSignals(restore=False) as signals:
+            say(started)
+
+            def status():
+                log.info("%s", format_counters(source.counters(), live.counters(), live.latency()))
+
+            stop = StopConditions(duration=args.duration, cycles=args.cycles, idle_timeout=args.idle_timeout)
+            try:
+                result = run_live(source, live, stop, signals=signals, on_status=status,
+                                  on_notice=lambda text: say(text, logging.WARNING))
+            except FileExistsError as exc:  # the recording of a wheel that appeared later
+                raise SystemExit(f"{prog}: {exc}; use --overwrite") from None
+            except OSError as exc:  # a recording that cannot be written (the run is closed: what was read is in)
+                raise SystemExit(f"{prog}: {exc}") from None
+            say(result.reason)
+            log.info("%s", format_counters(result.source, result.estimation, result.latency))
+            if view is not None:
+                view.close()
+                log.info("live view: %s", ", ".join(f"{k}={v}" for k, v in view.counters().items()))
+            if args.report:
+                report = result.report()
+                report["signals_ignored"] = signals.ignored
+                if view is not None:
+                    report["view"] = view.counters()
+                with open(args.report, "w") as fh:
+                    json.dump(report, fh, indent=1, default=str)
+            if signals.ignored:
+                log.info("%d more stop signal(s) ignored while stopping (nothing was lost)", signals.ignored)
+    finally:
+        if view is not None:
+            view.close()
     return 0

@@ -11,6 +11,10 @@ bad frames counted and skipped) and queues the samples with the time they
 arrived (host monotonic clock).  :meth:`CanSource.publish` sends one
 SlipEstimate message per leg cycle (ID 0x110 + wheel): an estimated cycle
 with Quality 0, a flagged one (not estimated) with Quality 15 (INVALID).
+:meth:`CanSource.add_listener` hands every frame received, as python-can
+gave it (ours or not, decodable or not), to a python-can style listener in
+the reader thread, before decoding: a log of the raw traffic
+(:class:`slipest.live.recording.FrameRecorder`) loses nothing.
 
 Wire facts (:class:`~slipest.io.source.Source`): samples carry an 8-bit
 counter and the device time in seconds modulo 0.65536 s (``TimeMod``); the
@@ -95,6 +99,13 @@ class CanSource(Source):
         one_line_logs(SOCKETCAND_LOGGER)
         self.c = {"published": 0, "publish_failed": 0, "references_invalid": 0}
         self._lock = threading.Lock()
+        self._listeners: list = []
+
+    def add_listener(self, listener) -> None:
+        """Give every frame received from now on to ``listener.on_message_received(msg)`` (a
+        ``can.Listener``), in the reader thread, in arrival order, before decoding.  Add listeners before
+        :meth:`start`; a listener must be quick and must not raise (it holds up the reader)."""
+        self._listeners.append(listener)
 
     def describe(self) -> str:
         return f"can:{self.config.describe()}"
@@ -126,10 +137,13 @@ class CanSource(Source):
             return
         intake = time.monotonic()
         decode = self.decoder.decode
+        listeners = self._listeners
         imu = []
         refs = []
         n = 0
         while msg is not None:
+            for listener in listeners:
+                listener.on_message_received(msg)
             with self._lock:
                 rec = decode(msg)
             if not add_record(rec, imu, refs):

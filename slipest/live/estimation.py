@@ -7,8 +7,10 @@ samples with that source's wire facts (a
 NaN samples so their cycles are flagged, stuck sensors are caught, wrapped
 counters and times are unwrapped, device restarts and frames missed by a
 late start are told apart from losses), runs one estimator per wheel,
-records the samples when asked (:mod:`slipest.live.recording`), and reports
-every estimate to a callback (print it, publish it on the bus...).  What
+records the samples and the raw CAN frames when asked
+(:mod:`slipest.live.recording`), and reports every estimate to a callback
+(print it, publish it on the bus...) and to the listeners added with
+:meth:`LiveEstimation.add_listener` (a live view: :mod:`slipest.live.view`).  What
 people should hear of (a restart, a late start) waits in :meth:`notices`.  It keeps
 counters and two latencies: from a cycle's closing sample arriving to its
 estimate being ready, and (for firmware-sim on this host, ``sim_speed``)
@@ -31,7 +33,7 @@ import numpy as np
 
 from slipest.io.device_stream import STUCK_TIME, WheelSamples, WheelStream
 from slipest.latency import latency_summary
-from slipest.live.recording import Recorder
+from slipest.live.recording import Recording
 
 __all__ = ["LiveEstimation", "WheelState"]
 
@@ -67,8 +69,13 @@ class LiveEstimation:
     given; 0: off).  ``sim_speed``: the device is firmware-sim on this host at this speed (its timestamps are
     this host's monotonic clock times the speed): device-to-intake latency
     is measured and wrapped times are unwrapped knowing the speed-up.
-    ``record``: record the samples (see :class:`~slipest.live.recording.Recorder`;
-    ``FileExistsError`` unless ``overwrite``).
+    ``record``: a path or a list of paths to record to, each as its name
+    says: the samples (a ``.csv``...) or the source's raw CAN frames (a
+    python-can log: ``.asc``, ``.blf``...); ``record_frames``: paths
+    recorded as CAN frames whatever their suffix (python-can's ``.csv``).
+    See :class:`~slipest.live.recording.Recording` (``ValueError`` for a
+    CAN log of a source without CAN frames, ``FileExistsError`` unless
+    ``overwrite``).
 
     ``on_estimate(wheel, estimate, info)`` is called for every closed cycle,
     in order; ``info`` holds ``intake`` (arrival of the cycle's closing
@@ -79,7 +86,7 @@ class LiveEstimation:
     def __init__(self, source, *, n_legs: int = 4, method: str | None = None, soil: dict | None = None,
                  use_reference: bool = False, model=None, wheels: list[int] | None = None,
                  stuck_samples: int | None = None, stuck_time: float = STUCK_TIME, sim_speed: float | None = None,
-                 record: str | None = None, overwrite: bool = False, on_estimate: Callable | None = None,
+                 record=None, record_frames=(), overwrite: bool = False, on_estimate: Callable | None = None,
                  estimator_factory: Callable | None = None):
         self.seq_modulus = int(source.seq_modulus)
         self.time_modulus = source.time_modulus
@@ -96,8 +103,9 @@ class LiveEstimation:
         self.on_estimate = on_estimate or (lambda wheel, est, info: None)
         self._factory = estimator_factory or self._default_factory
         self._closed = False
-        self.recorder = (Recorder(record, n_legs=n_legs, source=source.describe(), overwrite=overwrite)
-                         if record else None)
+        self.recorder = (Recording(record or (), source=source, n_legs=n_legs, frames=record_frames,
+                                   overwrite=overwrite) if record or record_frames else None)
+        self._sample_listeners: list[Callable] = []
         self.wheels: dict[int, WheelState] = {}
         self.c = {"frames_ignored_wheel": 0, "estimates": 0, "cycles_flagged": 0, "estimator_errors": 0}
         self._intake_latency: list[np.ndarray] = []
@@ -105,6 +113,24 @@ class LiveEstimation:
         self._spare = None
         self.last_error: str | None = None
         self._notices: list[str] = []
+
+    def add_listener(self, *, on_samples: Callable | None = None, on_estimate: Callable | None = None) -> None:
+        """Also call ``on_samples(wheel, samples)`` with each wheel's samples (a
+        :class:`~slipest.io.device_stream.WheelSamples`, as the recording gets them, before the
+        estimator does) and ``on_estimate(wheel, estimate, info)`` after the estimate callback (it
+        becomes part of :attr:`on_estimate`).  Both run in the loop's thread: they must be quick (hand
+        the work to a thread of their own, as :class:`~slipest.live.view.LiveView` does) and must not
+        keep or change the arrays."""
+        if on_samples is not None:
+            self._sample_listeners.append(on_samples)
+        if on_estimate is not None:
+            first = self.on_estimate
+
+            def both(wheel, est, info):
+                first(wheel, est, info)
+                on_estimate(wheel, est, info)
+
+            self.on_estimate = both
 
     def warmup(self) -> float:
         """Get the estimator's one-time costs (loading the model, compiled
@@ -222,6 +248,8 @@ class LiveEstimation:
             return
         if self.recorder is not None:
             self.recorder.add(wheel, s)
+        for listener in self._sample_listeners:
+            listener(wheel, s)
         try:
             est = st.estimator
             if len(s) <= _PUSH_ONE_BY_ONE:
@@ -315,9 +343,11 @@ class LiveEstimation:
             seg = getattr(st.estimator, "counters", None)
             if seg is not None:
                 wc["estimator"] = seg() if callable(seg) else dict(seg)
-            if self.recorder is not None:
+            if self.recorder is not None and self.recorder.samples is not None:
                 wc["rows_recorded"] = self.recorder.rows(wheel)
             c[f"wheel{wheel}"] = wc
+        if self.recorder is not None and self.recorder.frame_logs:
+            c["frame_logs"] = self.recorder.counters()
         return c
 
     def latency(self) -> dict:
