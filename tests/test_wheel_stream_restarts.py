@@ -168,3 +168,19 @@ def test_firmware_sim_restarted_on_the_same_link_is_one_restart_not_a_loss(tmp_p
     assert len(log) == wheel["samples_in"] and not np.isnan(log.az).any() and (np.diff(log.t) > 0).all()
     assert wheel["cycles"] <= 6 + 6  # each run's 6 cycles at most: none invented for the outage (it was 10 more)
     assert "wheel 0: the device restarted (counter 0" in est.stderr
+
+
+@pytest.mark.parametrize("stall_s", [0.02, 0.1, 0.4])
+def test_a_sped_up_device_read_in_a_burst_after_a_stall_is_no_restart(stall_s):
+    # firmware-sim at --speed 20 (the demo): a receiver that stalls stall_s of host time reads the frames sent
+    # meanwhile in one burst; the first one's arrival step is 20 x stall_s device seconds, its true step 1 ms
+    speed = 20.0
+    seq, t, az, th, dev_t = device(6000, t0=30.0, seed=3, modulus=256, wrapped=True)
+    host = dev_t / speed
+    late = (dev_t >= 32.0) & (dev_t < 32.0 + stall_s * speed)
+    host = np.where(late, 32.0 / speed + stall_s, host)  # held up, then read at once
+    stream = WheelStream(seq_modulus=256, time_modulus=0.65536, time_scale=speed)
+    out = feed(stream, [(seq, t, az, th, dev_t)], [host])
+    c = stream.counters()
+    assert c["restarts"] == 0 and c["frames_lost"] == 0
+    np.testing.assert_allclose(out.t - out.t[0], dev_t - dev_t[0], atol=1e-9)  # the device's own time, no jump

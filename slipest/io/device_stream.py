@@ -10,8 +10,8 @@ from.  Each frame goes through these rules, in arrival order:
   device's clock started again, below).  Wrapped ones (``time_modulus``,
   CAN's ``TimeMod``) advance by ``(t - last) mod M`` plus a whole number
   ``k`` of periods ``M``; the candidates are the steps within a second of
-  the arrival step (times ``time_scale``: a receiver is never a second
-  behind), and the counter picks the ``k`` whose number of lost frames
+  host time of the arrival step (``time_scale`` device seconds at a
+  sped-up device: a receiver is never a second behind), and the counter picks the ``k`` whose number of lost frames
   matches its own jump (a receiver that stalled and read a burst has a long
   arrival step but no lost frame), the arrival time breaking ties.  When
   none matches (within 2 frames) the device restarted: the step nearest
@@ -105,7 +105,8 @@ STUCK_TIME = 0.02
 STUCK_MIN_SAMPLES = 12
 #: [s] no link reorders frames by this much: a frame further back is a restarted clock.
 _REORDER_S = 1.0
-#: [s] wrapped times: a receiver is never this far behind the device, nor a frame this far ahead of its arrival.
+#: [s of host time] wrapped times: a receiver is never this far behind the device, nor a frame this far ahead of
+#: its arrival.
 _MAX_LAG_S = 1.0
 #: Counter and time steps agree within this many frames (+ 100 ppm of the time step: clock drift) for a loss.
 _AGREE_FRAMES = 2
@@ -428,6 +429,7 @@ class WheelStream:
         if counted:
             sm = self.seq_modulus
             gap = (seq - self._last_seq - 1) % sm
+        max_lag = _MAX_LAG_S * max(1.0, self.time_scale)  # a receiver is never a (host) second behind
         best_score, best_step, k = math.inf, base, 0
         nearest_lag, nearest_step = math.inf, base  # the candidate closest to the arrival step
         while True:  # candidates k = 0, 1, ... up to what the arrival times allow
@@ -435,7 +437,7 @@ class WheelStream:
             lag = abs(step - arrival) if timed else 0.0
             if lag < nearest_lag:
                 nearest_lag, nearest_step = lag, step
-            if lag <= _MAX_LAG_S:  # a receiver is never further behind (or a frame further ahead)
+            if lag <= max_lag:  # a receiver is never further behind (or a frame further ahead)
                 score = lag / m if timed else float(k)
                 if counted:
                     d = (round(step / period) - 1 - gap) % sm
