@@ -104,3 +104,19 @@ def test_simulate_bad_scenario_names_the_file_and_key(tmp_path):
     with pytest.raises(SystemExit) as exc:
         main(["simulate", "--scenario", str(scenario)])
     assert "bad.toml" in str(exc.value) and "slipp" in str(exc.value)
+
+
+@pytest.mark.parametrize("doc, where", [
+    ('[[segment]]\ncycles = 2\nslip = 0.1\nkS = "soft"\n', "segment 1: kS = 'soft'"),
+    ('[[segment]]\ncycles = 2\nslip = 0.1\n[[segment]]\ncycles = 2\nslip = [0.1, "x"]\n', "segment 2: slip = 'x'"),
+    ('[model]\nomega = "fast"\n[[segment]]\ncycles = 2\nslip = 0.1\n', "[model]: omega = 'fast'"),
+    ('[model]\nnL = 4.5\n[[segment]]\ncycles = 2\nslip = 0.1\n', "[model]: nL = 4.5"),
+    ('[imu]\nrate = "1k"\n[[segment]]\ncycles = 2\nslip = 0.1\n', "[imu]: rate = '1k'"),
+    ('[imu]\nseed = 1.5\n[[segment]]\ncycles = 2\nslip = 0.1\n', "[imu]: seed = 1.5"),
+])
+def test_simulate_a_value_of_the_wrong_type_names_the_file_segment_and_key(tmp_path, doc, where):
+    scenario = tmp_path / "bad.toml"
+    scenario.write_text(doc)
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate", "--scenario", str(scenario)])
+    assert "bad.toml" in str(exc.value) and where in str(exc.value), str(exc.value)

@@ -114,3 +114,17 @@ def test_can_times_start_at_the_first_timemod_and_keep_the_device_steps(tmp_path
     for e in got:  # then the device's steps: a sample's time since the first, plus that origin
         assert np.min(np.abs(s.t + first - e.t_end)) < 1e-5
     assert got[-1].t_end > 3 * TIME_MOD_PERIOD  # unwrapped across many periods
+
+
+def test_the_estimate_table_lists_every_field_and_no_other():
+    """docs/api.md's `Estimate` table documents exactly ESTIMATE_FIELDS (fields are added over time)."""
+    from slipest.online import ESTIMATE_FIELDS
+
+    text = API_MD.read_text()
+    table = text[text.index("### `Estimate`"):]
+    table = table[:table.index("\n\n", table.index("| field |"))]
+    documented = set()
+    for row in table.splitlines()[2:]:
+        if row.startswith("| `"):
+            documented |= set(re.findall(r"`(\w+)`", row.split("|")[1]))
+    assert documented == set(ESTIMATE_FIELDS)

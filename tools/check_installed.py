@@ -88,7 +88,7 @@ def main() -> int:
         rows = [line.split(",") for line in replay.stdout.splitlines()[1:]]
         quality = replay.stdout.splitlines()[0].split(",").index("quality")
         ok = sum(1 for r in rows if r[quality] == "ok")
-        if ok < 4 or "truth: slip RMSE" not in replay.stderr:
+        if len(rows) != 6 or ok != 6 or "truth: slip RMSE" not in replay.stderr:  # 6 cycles driven: 6 estimates
             fail(f"slipest simulate | slipest replay -: {ok} cycles estimated of {len(rows)}", replay.stderr)
         print(f"check_installed: slipest simulate | slipest replay - --truth: {ok} of {len(rows)} cycles estimated "
               f"({elapsed:.1f} s, kernels compiled on this first run); "

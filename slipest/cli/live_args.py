@@ -50,7 +50,7 @@ def add_live_arguments(p: argparse.ArgumentParser, link: str, *, frames: bool = 
     ``frames``: the link delivers CAN frames (``--record-frames``)."""
     p.add_argument("--config", metavar="FILE.toml",
                    help="read options from a TOML file: its keys are this command's long options (e.g. legs = 4, "
-                   "wheel = [0, 1], model = \"m.json\"); options on the command line override it")
+                   "wheel = [0, 1], model = \"rover_model.npz\"); options on the command line override it")
     p.add_argument("--wait-open", type=float, default=5.0, metavar="S",
                    help=f"keep trying to open {link} for S seconds at start (default 5)")
     e = p.add_argument_group("estimation")

@@ -47,6 +47,13 @@ DEFAULT_RATE = 1000.0
 SEGMENT_FIELDS = ("slip", "kS", "phiS", "phiD", "omega")
 
 
+def _number(where: str, key: str, value) -> float:
+    """A scenario value as a float, or a ValueError naming the section (or segment) and the key."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"{where}: {key} = {value!r} must be a number")
+    return float(value)
+
+
 @dataclass(frozen=True)
 class Scenario:
     """A simulated run: per-cycle model parameters and IMU settings.
@@ -141,9 +148,10 @@ class Scenario:
                 if isinstance(value, (list, tuple)):
                     if len(value) != 2:
                         raise ValueError(f"segment {s}: {key} ramp must be [start, end], got {value!r}")
-                    ramps[key] = np.linspace(float(value[0]), float(value[1]), n)
+                    ramps[key] = np.linspace(_number(f"segment {s}", key, value[0]),
+                                             _number(f"segment {s}", key, value[1]), n)
                 else:
-                    ramps[key] = np.full(n, float(value))
+                    ramps[key] = np.full(n, _number(f"segment {s}", key, value))
             try:
                 for j in range(n):
                     cycles.append(replace(base, **{k: float(v[j]) for k, v in ramps.items()}))
@@ -161,12 +169,24 @@ class Scenario:
         bad = set(model) - set(PARAM_NAMES)
         if bad:
             raise ValueError(f"[model]: unknown parameter(s) {sorted(bad)}")
+        for key, value in model.items():
+            model[key] = _number("[model]", key, value)
+            if key == "nL":
+                if model[key] != int(model[key]):
+                    raise ValueError(f"[model]: nL = {value!r} must be an integer")
+                model[key] = int(model[key])
         base = StickSlipParams(**model)
         imu_doc = dict(doc.get("imu", {}))
         imu = {}
         for key, target in (("rate", "rate"), ("noise", "noise_g"), ("seed", "seed"), ("dt", "dt")):
             if key in imu_doc:
-                imu[target] = imu_doc.pop(key)
+                value = imu_doc.pop(key)
+                if key == "seed":
+                    if not isinstance(value, int) or isinstance(value, bool):
+                        raise ValueError(f"[imu]: seed = {value!r} must be an integer")
+                    imu[target] = value
+                else:
+                    imu[target] = _number("[imu]", key, value)
         if imu_doc:
             raise ValueError(f"[imu]: unknown key(s) {sorted(imu_doc)}; allowed: rate, noise, seed, dt")
         segments = doc.get("segment")
