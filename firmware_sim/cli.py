@@ -72,7 +72,8 @@ def add_device_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--linger", type=float, default=0.5, help="keep the link open this long after the last frame [s]")
     g.add_argument("--report", metavar="FILE", help="write a JSON report of what was sent and injected")
     g.add_argument("--send-log", metavar="FILE.npz",
-                   help="write one row per frame (kind, wheel, seq, t_us, send_ns, status) for latency analysis")
+                   help="write one row per frame (kind, wheel, seq, t_us, send_ns, status, cycle, slip, az, theta: "
+                   "the values sent, before any corruption) for latency and fault analysis")
     g.add_argument("-q", "--quiet", action="store_true", help="no summary on stderr")
     f = p.add_argument_group("faults")
     f.add_argument("--corrupt-rate", type=float, default=0.0, metavar="P",

@@ -221,7 +221,8 @@ class Device:
     ``wait_peer``: seconds to wait for a peer before starting the clock
     (``None`` forever).  ``linger``: seconds to keep the link open after
     the last frame, so the peer can drain it.  ``send_log``: keep one row per
-    frame (kind, wheel, seq, t_us, send time, status) for :meth:`send_log`.
+    frame (kind, wheel, seq, t_us, send time, status, cycle, slip, and the
+    values before any corruption: az, theta) for :meth:`send_log`.
     ``max_prefetch_frames``: frames generated ahead of time; a run with
     fewer frames is generated whole before the clock starts, so the
     simulator's compiled kernel (which holds the GIL) never delays a frame.
@@ -374,7 +375,8 @@ class Device:
         if self.keep_send_log:
             self._log_parts.append(
                 {"kind": table["kind"], "wheel": table["wheel"], "seq": table["seq"], "t_us": t_us,
-                 "send_ns": send_ns, "status": status, "cycle": table["cycle"], "slip": table["slip"]}
+                 "send_ns": send_ns, "status": status, "cycle": table["cycle"], "slip": table["slip"],
+                 "az": table["az"], "theta": table["theta"]}
             )
 
     def _link_faults(self, t: float) -> None:

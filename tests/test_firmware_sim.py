@@ -278,10 +278,10 @@ def _read_all(port: str, until, timeout: float = 30.0) -> tuple[list, dict]:
 
 
 def test_serial_device_in_another_process_reports_what_it_sent_and_injected(tmp_path):
-    report = tmp_path / "report.json"
+    report, send_log = tmp_path / "report.json", tmp_path / "sent.npz"
     # window of cycle 1 (the propulsive half-stance) starts at 1.5 T
     proc = firmware_sim("serial", "--cycles", "3", "--speed", "25", "--noise", "0.01", "--seed", "3", "--wheels", "2",
-                        "--send-reference", "--report", str(report), "--linger", "0.2",
+                        "--send-reference", "--report", str(report), "--send-log", str(send_log), "--linger", "0.2",
                         "--fault", f"drop@{1.6 * PERIOD:.3f}:n=5,wheel=1",
                         "--fault", f"corrupt@{1.7 * PERIOD:.3f}:n=4,wheel=0",
                         "--fault", "unknown-ids@3.0:n=7",
@@ -309,6 +309,19 @@ def test_serial_device_in_another_process_reports_what_it_sent_and_injected(tmp_
     run = np.flatnonzero(np.diff(az0) == 0)
     assert inj["stuck_samples"] == 120 and run.size >= 119
     assert rep["lateness"]["n"] > 0 and rep["t0_us"] > 0
+    # the send log: one row per frame with the values sent; every IMU frame received is a row sent intact,
+    # bit for bit, and the corrupted ones are the frames that never arrived
+    log = np.load(send_log)
+    status = np.asarray(log["status_names"])[log["status"]]
+    is_imu = log["kind"] == 1
+    rows = {(int(w), int(q)): (int(t), float(np.float32(a)), float(np.float32(th)), str(st))
+            for w, q, t, a, th, st in zip(log["wheel"][is_imu], log["seq"][is_imu] % 65536, log["t_us"][is_imu],
+                                          log["az"][is_imu], log["theta"][is_imu], status[is_imu])}
+    assert all(rows[(f.wheel, f.seq)] == (f.t_us, f.az, f.theta, "sent") for f in imu)
+    got = {(f.wheel, f.seq) for f in imu}
+    corrupted = {k for k, v in rows.items() if v[3] == "corrupted"}
+    assert len(corrupted) == 4 and not corrupted & got
+    assert len(got) == sum(v[3] == "sent" for v in rows.values())
 
 
 def test_serial_disconnect_announces_a_new_pty_behind_a_stable_link(tmp_path):

@@ -8,8 +8,9 @@ once the estimator has streamed for a while it gets a signal, then a second one 
 
 * the estimator exits with status 0 and printed its counters;
 * the report exists, is valid JSON and says why the run ended;
-* every wheel's record parses completely, with as many rows as the report's ``rows_recorded``
-  and ``samples_out`` for that wheel (every sample handed to the estimator was written, once);
+* every wheel's record parses completely, with as many rows as the report's ``rows_recorded``,
+  ``samples_out`` and ``samples_in`` for that wheel (every frame the wheel received was handed to
+  the estimator and written, once: none held back, none inserted);
 * every frame the decoder delivered reached its wheel's record (sum of ``samples_in`` over the
   wheels = the source's ``frames_ok``), the rows follow each other at the sample period with
   no gap and no lost frame (a clean pty loses nothing), the two wheels' records differ by at most
@@ -105,9 +106,9 @@ def trial(sig: signal.Signals, delay: float, wheels: int, speed: float, seed: in
             continue
         n = len(log)
         rows.append(n)
-        if not n == wc["rows_recorded"] == wc["samples_out"]:
+        if not n == wc["rows_recorded"] == wc["samples_out"] == wc["samples_in"]:
             problems.append(f"wheel {w}: {n} rows, report rows_recorded {wc['rows_recorded']}, "
-                            f"samples_out {wc['samples_out']}")
+                            f"samples_out {wc['samples_out']}, frames received samples_in {wc['samples_in']}")
         if wc["frames_lost"] or np.isnan(log.az).any():
             problems.append(f"wheel {w}: {wc['frames_lost']} frames lost, {int(np.isnan(log.az).sum())} NaN rows")
         steps = np.diff(log.t)
