@@ -175,7 +175,7 @@ def test_prediction_at_the_truth_matches_the_stream_within_noise(effect, values)
         ("contact_damping", {"c_hc": 300.0 * (G / 1100.0), "n_hc": 1.0}, {"b_hc": 300.0, "n_hc": 1.0}),
         ("stribeck", {"vs": 0.03, "delta": 2.0, "viscous": 0.5}, {"vs": 0.03, "delta": 2.0, "viscous": 0.5}),
         ("speed_ripple", {"ripple_c": 0.2 * math.cos(0.6), "ripple_s": 0.2 * math.sin(0.6)},
-         {"amplitude": 0.2, "phase": 0.6}),
+         {"amplitude": 0.2, "phase": 0.6, "harmonic": 1}),
         ("imu_saturation", {"full_scale": 12.5}, {"full_scale": 12.5}),
     ],
 )

@@ -33,6 +33,7 @@ NAMES = (
     "angle_offset",
     "touchdown_impact",
     "speed_ripple",
+    "time_skew",
 )
 
 
@@ -78,7 +79,8 @@ def test_each_effect_object_holds_its_pieces():
 
 def test_ripple_columns_are_the_kernel_fields():
     e = EFFECTS["speed_ripple"]
-    assert e.kernel_columns({"amplitude": 0.2, "phase": 0.7}) == {K.P_RIPPLE_A: 0.2, K.P_RIPPLE_PH: 0.7}
+    assert e.kernel_columns({"amplitude": 0.2, "phase": 0.7, "harmonic": 2}) == {
+        K.P_RIPPLE_A: 0.2, K.P_RIPPLE_PH: 0.7, K.P_RIPPLE_H: 2}
 
 
 # --- parsing -----------------------------------------------------------------------------------

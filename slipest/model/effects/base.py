@@ -232,6 +232,14 @@ class Effect:
         """
         return {p.name: fitted[p.name] for p in self.params}
 
+    def equivalent_on(self, omega) -> str | None:
+        """The catalog effect this one cannot be told from on cycles of leg speeds ``omega`` [rad/s] (default None).
+
+        The diagnosis then fits only that one (e.g. a time skew is an angle
+        offset while the leg speed does not change).
+        """
+        return None
+
     def signature_seeds(self, data) -> list[dict]:
         """Fitted parameters read off the data directly, to seed the fit (partial value dicts; default none).
 

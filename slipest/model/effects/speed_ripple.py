@@ -11,7 +11,7 @@ from slipest.model.effects.base import FitParam, ParamSpec, PhysicsEffect
 
 
 class SpeedRippleEffect(PhysicsEffect):
-    """Drive/gear ripple once per leg: ``omega(theta) = omega0 (1 + A sin(nL theta + phase))``.
+    """Drive/gear ripple ``h`` times per leg cycle: ``omega(theta) = omega0 (1 + A sin(h nL theta + phase))``.
 
     Fitted as ``(ripple_c, ripple_s) = (A cos phase, A sin phase)`` (no
     wrap-around in the phase, smooth through ``A = 0``). The log's mean leg
@@ -21,15 +21,18 @@ class SpeedRippleEffect(PhysicsEffect):
     """
 
     name = "speed_ripple"
-    equation = "omega(theta) = omega0 (1 + A sin(nL theta + phase))"
-    description = "leg angular speed not constant over the cycle (drive/gear ripple once per leg)"
+    equation = "omega(theta) = omega0 (1 + A sin(h nL theta + phase))"
+    description = "leg angular speed not constant over the cycle (drive/gear ripple h times per leg cycle)"
     params = (
         ParamSpec("amplitude", "-", 0.2, (0.0, 0.3), (0.15, 0.3), (0.0, 0.9), "relative ripple amplitude A",
                   neutral=0.0),
         ParamSpec("phase", "rad", 0.0, (-math.pi, math.pi), (-math.pi, math.pi), (-2 * math.pi, 2 * math.pi),
                   "ripple phase"),
+        ParamSpec("harmonic", "-", 1, (1, 4), (1, 1), (1, 8),
+                  "ripples per leg cycle h (an integer: the ripple repeats every leg cycle)", integer=True),
     )
-    fields = (("amplitude", "ripple_amp", K.P_RIPPLE_A), ("phase", "ripple_phase", K.P_RIPPLE_PH))
+    fields = (("amplitude", "ripple_amp", K.P_RIPPLE_A), ("phase", "ripple_phase", K.P_RIPPLE_PH),
+              ("harmonic", "ripple_harmonic", K.P_RIPPLE_H))
     fit_params = (
         FitParam("ripple_c", "-", -0.35, 0.35, off=0.0),
         FitParam("ripple_s", "-", -0.35, 0.35, off=0.0),
@@ -37,7 +40,7 @@ class SpeedRippleEffect(PhysicsEffect):
 
     def catalog_values(self, fitted, soil, geometry):
         c, s = fitted["ripple_c"], fitted["ripple_s"]
-        return {"amplitude": np.hypot(c, s), "phase": np.arctan2(s, c)}
+        return {"amplitude": np.hypot(c, s), "phase": np.arctan2(s, c), "harmonic": np.ones_like(np.asarray(c))}
 
     def drive_speed(self, omega, values):
         return omega / np.sqrt(1.0 - values["amplitude"] ** 2)  # same mean speed (cycle period) as the log
@@ -48,9 +51,10 @@ class SpeedRippleEffect(PhysicsEffect):
         w0 = self.drive_speed(np.asarray(omega, dtype=float)[None, :], {"amplitude": a[:, None]})[:, :, None]
         phi = grid.rigid_psi
         a = np.asarray(a, dtype=float)[:, None, None]
-        arg = grid.n_legs * phi[None, None, :] + np.asarray(values["phase"], dtype=float)[:, None, None]
+        k = grid.n_legs * np.asarray(values["harmonic"], dtype=float)[:, None, None]  # ripples per radian
+        arg = k * phi[None, None, :] + np.asarray(values["phase"], dtype=float)[:, None, None]
         w = w0 * (1.0 + a * np.sin(arg))
-        dw = w0 * a * grid.n_legs * np.cos(arg)
+        dw = w0 * a * k * np.cos(arg)
         leg = np.asarray(leg, dtype=float)[:, None, None]
         return -leg * (np.cos(phi)[None, None, :] * w * w + np.sin(phi)[None, None, :] * w * dw)
 

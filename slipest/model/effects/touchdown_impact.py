@@ -10,12 +10,12 @@ from slipest.model.effects.base import Effect, FitParam, ParamSpec
 from slipest.model.params import DEFAULT_LEGS, StickSlipParams
 
 
-def impact_response(tau_since, amplitude, tau, freq):
-    """The touchdown transient ``A exp(-s/tau) sin(2 pi f s)`` at ``s >= 0`` [s], 0 before [m/s^2]."""
+def impact_response(tau_since, amplitude, tau, freq, onset=0.0):
+    """The touchdown transient ``A exp(-s/tau) sin(2 pi f s + onset)`` at ``s >= 0`` [s], 0 before [m/s^2]."""
     s = np.asarray(tau_since, dtype=float)
     out = np.zeros_like(s)
     on = s >= 0
-    out[on] = amplitude * np.exp(-s[on] / tau) * np.sin(2 * math.pi * freq * s[on])
+    out[on] = amplitude * np.exp(-s[on] / tau) * np.sin(2 * math.pi * freq * s[on] + onset)
     return out
 
 
@@ -30,10 +30,11 @@ class TouchdownImpact:
 
     domain = "continuous"
 
-    def __init__(self, amplitude: float, tau: float, freq: float, n_legs: int = DEFAULT_LEGS):
+    def __init__(self, amplitude: float, tau: float, freq: float, n_legs: int = DEFAULT_LEGS, onset: float = 0.0):
         self.amplitude = float(amplitude)
         self.tau = float(tau)
         self.freq = float(freq)
+        self.onset = float(onset)
         self.n_legs = int(n_legs)
         self._last_k = None
         self._active: list[float] = []  # boundary times still ringing [s]
@@ -65,36 +66,41 @@ class TouchdownImpact:
         for tb in active:
             sel = t >= tb
             if sel.any():
-                out[sel] += impact_response(t[sel] - tb, self.amplitude, self.tau, self.freq)
+                out[sel] += impact_response(t[sel] - tb, self.amplitude, self.tau, self.freq, self.onset)
         horizon = 12.0 * self.tau  # exp(-12) ~ 6e-6 of the amplitude: done
         self._active = [tb for tb in active if t[-1] - tb < horizon]
         return out, theta
 
 
-def impact_batch(grid, omega: float, amplitude, tau, freq) -> np.ndarray:
+def impact_batch(grid, omega: float, amplitude, tau, freq, onset=0.0) -> np.ndarray:
     """The touchdown train on the extended grid for candidates (arrays ``(P,)``): ``(P, n_ext)`` [m/s^2].
 
     Constant leg speed ``omega`` [rad/s]. Every boundary ``k T``
     (``T = 2 pi/(nL omega)``) up to a point contributes ``A exp(-s/tau)
-    sin(2 pi f s)``, ``s`` its age; summed over the whole past (a geometric
-    series): ``Im(A exp(l s0) / (1 - exp(l T)))`` with ``l = -1/tau + 2 pi i f``
-    and ``s0`` the age of the latest boundary.
+    sin(2 pi f s + onset)``, ``s`` its age; summed over the whole past (a
+    geometric series): ``Im(A exp(i onset) exp(l s0) / (1 - exp(l T)))`` with
+    ``l = -1/tau + 2 pi i f`` and ``s0`` the age of the latest boundary.
     """
     amplitude = np.asarray(amplitude, dtype=float)[:, None]
     tau = np.asarray(tau, dtype=float)[:, None]
     freq = np.asarray(freq, dtype=float)[:, None]
+    onset = np.broadcast_to(np.asarray(onset, dtype=float), tau.shape[:1])[:, None]
     t = grid.time(omega)[None, :]
     period = 2 * grid.half / omega
     s0 = t - np.floor(t / period) * period
     lam = -1.0 / tau + 2j * math.pi * freq
-    return amplitude * np.imag(np.exp(lam * s0) / (1.0 - np.exp(lam * period)))
+    return amplitude * np.imag(np.exp(1j * onset + lam * s0) / (1.0 - np.exp(lam * period)))
 
 
 class TouchdownImpactEffect(Effect):
     """The next leg's touchdown at every cycle boundary excites a decaying hub transient.
 
-    ``az += A exp(-(t - tb)/tau) sin(2 pi f (t - tb))`` for ``t >= tb``, at
-    every boundary (phase ``-pi/nL``, time ``tb``), either sign of ``A``.
+    ``az += A exp(-(t - tb)/tau) sin(2 pi f (t - tb) + onset)`` for ``t >= tb``,
+    at every boundary (phase ``-pi/nL``, time ``tb``), either sign of ``A``.
+    The onset phase sets the transient's shape at touchdown: 0 starts at
+    zero (an impulse into a lightly damped mode), ``pi/2`` with a jump (a
+    step of load); with a low ``f`` and ``onset = pi/2`` it is a plain
+    exponential decay.
     The transient starts in the rigid half; it reaches the stance window's
     ``Da`` only when it rings for about a second (a lightly damped chassis
     mode, damping ratio ~1.5%); a short one is visible to the diagnosis but
@@ -108,7 +114,8 @@ class TouchdownImpactEffect(Effect):
 
     name = "touchdown_impact"
     kind = "continuous"
-    equation = "az += A exp(-(t - tb)/tau) sin(2 pi f (t - tb)),  t >= tb, tb: each boundary at phase -pi/nL"
+    equation = ("az += A exp(-(t - tb)/tau) sin(2 pi f (t - tb) + onset),  t >= tb, tb: each boundary at phase "
+                "-pi/nL")
     description = "the next leg's touchdown at each cycle boundary excites a decaying hub transient"
     params = (
         ParamSpec("amplitude", "m/s^2", 15.0, (2.0, 30.0), (12.0, 20.0), (-1e3, 1e3),
@@ -117,6 +124,9 @@ class TouchdownImpactEffect(Effect):
                   "decay time constant (a lightly damped hub/chassis mode rings for up to ~1 s)", log_scale=True),
         ParamSpec("freq", "Hz", 12.0, (5.0, 60.0), (8.0, 20.0), (0.1, 500.0), "ringing frequency",
                   log_scale=True),
+        ParamSpec("onset", "rad", 0.0, (-math.pi, math.pi), (0.0, 0.0), (-2 * math.pi, 2 * math.pi),
+                  "onset phase: the transient's shape at touchdown (0: starts at zero, an impulse; pi/2: "
+                  "starts with a jump, a step of load)"),
     )
     fit_params = (
         FitParam("amplitude", "m/s^2", -35.0, 35.0, linear=True, off=0.0),
@@ -125,7 +135,10 @@ class TouchdownImpactEffect(Effect):
     )
 
     def stage(self, values):
-        return TouchdownImpact(values["amplitude"], values["tau"], values["freq"])
+        return TouchdownImpact(values["amplitude"], values["tau"], values["freq"], onset=values["onset"])
+
+    def catalog_values(self, fitted, soil, geometry):
+        return {**{k: fitted[k] for k in ("amplitude", "tau", "freq")}, "onset": np.zeros_like(fitted["tau"])}
 
     def sense(self, x, values, ctx):
         tau, freq = values["tau"], values["freq"]
