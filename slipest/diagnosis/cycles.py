@@ -21,6 +21,16 @@ assumes. Bins without samples (a coarse encoder repeats angles) are
 interpolated from their neighbours, if at least :data:`MIN_FILLED` of the
 bins hold samples. A cycle whose phase goes backwards (the rover reversing)
 or holds a non-finite ``az`` is dropped.
+
+Each cycle's leg speed ``omega`` is the mean speed of its *speed level*:
+cycles whose speeds (least-squares slope of ``theta`` over the cycle)
+agree within :data:`SPEED_TOLERANCE` form one level (so a drive that holds
+its speed gives one level, and the prediction simulates one stance per
+level and slip), whose speed is the leg-cycle angle over the median
+duration of its cycles (boundary to boundary; the median leaves out a
+cycle that straddles a change of speed, e.g. with an encoder offset; a ripple within the cycle
+averages out). A log at one speed level has the speed of the whole log, as
+before. ``prev_omega`` is the previous cycle's.
 """
 
 from __future__ import annotations
@@ -34,6 +44,9 @@ from slipest.diagnosis.predict import Grid
 
 #: Fewest share of the analysis bins a cycle's samples must fill (the rest are interpolated).
 MIN_FILLED = 0.1
+
+#: Relative spread of leg speeds [-] within which cycles share one speed level (see the module docstring).
+SPEED_TOLERANCE = 0.02
 
 #: Why a leg cycle of a log is not used (counted, and named when no cycle is left).
 DROP_REASONS = ("incomplete", "no reference slip", "first of the log", "backwards or non-finite az")
@@ -50,8 +63,10 @@ class CycleSet:
     """Binned cycles of one or more logs.
 
     y: ``(C, nb)`` bin averages of ``az`` [m/s^2]; count: samples per bin;
-    slip, prev_slip: ``(C,)`` [-]; omega: ``(C,)`` mean leg speed of the
-    cycle's log [rad/s]; log: ``(C,)`` log index; k: cycle number in its log;
+    slip, prev_slip: ``(C,)`` [-]; omega, prev_omega: ``(C,)`` leg speed
+    of the cycle's speed level and of the previous cycle's [rad/s] (see the
+    module docstring; ``prev_omega`` defaults to ``omega``); log: ``(C,)``
+    log index; k: cycle number in its log;
     t0: ``(C,)`` start time [s]; speed: ``(C, nb)`` leg speed per bin from
     the encoder [rad/s]; noise: white-noise standard deviation of
     one sample [m/s^2] per log (median absolute second difference);
@@ -71,6 +86,11 @@ class CycleSet:
     noise: np.ndarray
     samples: list = field(default_factory=list, repr=False)
     dropped: int = 0
+    prev_omega: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.prev_omega is None:
+            self.prev_omega = np.array(self.omega, dtype=float, copy=True)
 
     def __len__(self) -> int:
         return len(self.slip)
@@ -90,6 +110,7 @@ class CycleSet:
             speed=self.speed[idx],
             noise=self.noise,
             samples=[self.samples[i] for i in np.atleast_1d(idx)] if self.samples else [],
+            prev_omega=self.prev_omega[idx],
         )
 
     @property
@@ -204,19 +225,26 @@ def cut_cycles(t, az, theta, slip, n_legs: int, grid: Grid | None = None, log_in
     slips = np.array(slips)
     prev = np.array([slip_of_k[kk - 1] for kk in ks])
     prev = np.where(np.isfinite(prev), prev, slips)
-    # mean leg speed over whole cycles (a drive ripple within the cycle averages out)
+    # mean leg speed over whole cycles (a drive ripple within the cycle averages out), per speed level
     t0a = np.array(t0s)
     if len(ks) >= 2 and ks[-1] > ks[0]:
         omega = 2 * half * (ks[-1] - ks[0]) / (t0a[-1] - t0a[0])
     else:
         omega = (theta[-1] - theta[0]) / (t[-1] - t[0])
+    level_speed = _level_speeds(t, theta, starts, ends, k, half)
+    if len(set(level_speed.values())) <= 1:
+        omegas = np.full(len(ks), omega)  # one speed level: the whole log's mean speed
+        prev_omegas = omegas.copy()
+    else:
+        omegas = np.array([level_speed.get(int(kk), omega) for kk in ks])
+        prev_omegas = np.array([level_speed.get(int(kk) - 1, om) for kk, om in zip(ks, omegas)])
     return CycleSet(
         grid=grid,
         y=np.array(ys),
         count=np.array(counts),
         slip=slips,
         prev_slip=prev,
-        omega=np.full(len(ks), omega),
+        omega=omegas,
         log=np.full(len(ks), log_index),
         k=ks,
         t0=np.array(t0s),
@@ -224,7 +252,56 @@ def cut_cycles(t, az, theta, slip, n_legs: int, grid: Grid | None = None, log_in
         noise=np.array([noise]),
         samples=samples,
         dropped=sum(why.values()),
+        prev_omega=prev_omegas,
     )
+
+
+def speed_levels(speeds, tol: float = SPEED_TOLERANCE) -> np.ndarray:
+    """Level label ``(n,)`` of each speed (> 0): sorted speeds split where they jump by more than ``tol``
+    (relative), and a level wider than ``2 tol`` split evenly in log speed (a ramp)."""
+    speeds = np.asarray(speeds, dtype=float)
+    labels = np.zeros(len(speeds), dtype=np.int64)
+    if len(speeds) == 0:
+        return labels
+    order = np.argsort(speeds)
+    ls = np.log(speeds[order])
+    cut = np.flatnonzero(np.diff(ls) > tol) + 1
+    next_label = 0
+    for seg in np.split(np.arange(len(ls)), cut):
+        width = ls[seg[-1]] - ls[seg[0]]
+        n_sub = max(1, int(math.ceil(width / (2 * tol) - 1e-12)))
+        sub = np.minimum(((ls[seg] - ls[seg[0]]) / (width / n_sub) if width > 0 else 0 * seg).astype(np.int64),
+                         n_sub - 1)
+        labels[order[seg]] = next_label + sub
+        next_label += n_sub
+    return labels
+
+
+def _level_speeds(t, theta, starts, ends, k, half) -> dict:
+    """Cycle number -> its speed level's speed [rad/s] (see the module docstring), for every cut segment
+    with at least 3 samples and a positive speed."""
+    rough, ks = [], []
+    for s0, s1 in zip(starts, ends):
+        if s1 - s0 < 3:
+            continue
+        tt, th = t[s0:s1], theta[s0:s1]
+        slope = np.polyfit(tt - tt[0], th, 1)[0]
+        if slope > 0 and np.isfinite(slope):
+            rough.append(slope)
+            ks.append(int(k[s0]))
+    if not ks:
+        return {}
+    labels = speed_levels(np.array(rough))
+    start_of = {int(k[s0]): t[s0] for s0 in starts[1:]}  # the log's first segment may start mid-cycle
+    out = {}
+    for lab in np.unique(labels):
+        members = [kk for kk, lb in zip(ks, labels) if lb == lab]
+        durations = [start_of[kk + 1] - start_of[kk] for kk in members if kk + 1 in start_of and kk in start_of]
+        durations = [d for d in durations if d > 0]
+        speed = 2 * half / float(np.median(durations)) if durations else float(np.mean(
+            [r for r, lb in zip(rough, labels) if lb == lab]))
+        out.update({kk: speed for kk in members})
+    return out
 
 
 def _no_cycle_message(why: dict, n_legs: int) -> str:
@@ -265,4 +342,5 @@ def concat(sets) -> CycleSet:
         noise=np.array(noise),
         samples=sum((s.samples for s in sets), []),
         dropped=sum(s.dropped for s in sets),
+        prev_omega=np.concatenate([s.prev_omega for s in sets]),
     )

@@ -139,16 +139,22 @@ class PredictionContext(Protocol):
     noise_sigma: float
     solve_linear: bool
 
-    def speed_groups(self):
-        """``(omega [rad/s], mask (G,))`` per distinct mean leg speed of the predicted groups."""
+    def speed_groups(self, previous: bool = False):
+        """``(omega [rad/s], mask (G,))`` per distinct leg speed of the predicted groups; ``previous``:
+        ``(omega, prev_omega, mask)`` per distinct pair with the previous cycles' speed."""
         ...
 
     def bin_average(self, x: np.ndarray, offset=None) -> np.ndarray:
-        """``(P, G, n_ext)`` extended-grid signal -> ``(P, G, nb)`` analysis bins (encoder offset ``(P,)`` [rad])."""
+        """``(P, G, n_ext)`` extended-grid signal -> ``(P, G, nb)`` analysis bins (encoder offset [rad]: ``(P,)``,
+        or ``(P, nb + 1)`` per bin edge)."""
         ...
 
     def solve_amplitude(self, param: "FitParam", m0: np.ndarray, h: np.ndarray) -> np.ndarray:
         """Least-squares amplitude ``(P,)`` of ``m0 + A h`` (bins) with the bias, clipped to ``param``'s range."""
+        ...
+
+    def solve_amplitudes(self, params, m0: np.ndarray, hs) -> list[np.ndarray]:
+        """Least-squares amplitudes ``(P,)`` each of ``m0 + sum_k A_k h_k`` with the bias, clipped to ``params[k]``'s range."""
         ...
 
 

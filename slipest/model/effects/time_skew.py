@@ -79,7 +79,8 @@ class TimeSkewEffect(Effect):
     (:class:`~slipest.model.effects.angle_offset.AngleOffsetEffect`), so the
     two differ only when the leg speed changes: on cycles at one speed the
     diagnosis does not fit it (:meth:`equivalent_on`). The prediction takes
-    each cycle group's mean leg speed.
+    each cycle's speed level and, for the part of the cycle whose ``az``
+    comes from the previous cycle, the previous cycle's.
     """
 
     name = "time_skew"
@@ -92,7 +93,7 @@ class TimeSkewEffect(Effect):
                   "IMU sample time minus encoder sample time of a logged pair (positive: the IMU is late; "
                   "the moderate range is for leg speeds 0.4-1.1 rad/s)", neutral=0.0),
     )
-    fit_params = (FitParam("skew", "s", -0.6, 0.6, off=0.0),)
+    fit_params = (FitParam("skew", "s", -0.2, 0.6, off=0.0),)  # -0.2 s: the prediction grid's margin at 1.2 rad/s
     memory = True
     #: Relative spread of the cycles' leg speeds ``(max - min) / median`` below which a time skew is an angle offset.
     MIN_SPEED_SPREAD = 0.2
@@ -101,10 +102,17 @@ class TimeSkewEffect(Effect):
         return TimeSkew(values["skew"])
 
     def sense(self, x, values, ctx):
-        skew = np.asarray(values["skew"], dtype=float)
+        """Bin averages with the time shift mapped to phase: ``skew`` seconds before the bin edge at logged phase
+        ``e`` is phase ``e - omega skew`` while that is still in the cycle, else the previous cycle's end at its
+        own speed."""
+        lag = np.asarray(values["skew"], dtype=float)[:, None]
+        half = ctx.grid.half
+        edges = ctx.grid.bin_edges[None, :]
         out = np.empty(x.shape[:2] + (ctx.grid.nb,))
-        for om, sel in ctx.speed_groups():
-            out[:, sel] = ctx.bin_average(x[:, sel], skew * om)
+        for om, pom, sel in ctx.speed_groups(previous=True):
+            since = (edges + half) / om  # time since the cycle's boundary [s]
+            true = np.where(since >= lag, edges - om * lag, -half - pom * (lag - since))
+            out[:, sel] = ctx.bin_average(x[:, sel], edges - true)
         return out
 
     def equivalent_on(self, omega) -> str | None:

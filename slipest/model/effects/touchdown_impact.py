@@ -72,6 +72,17 @@ class TouchdownImpact:
         return out, theta
 
 
+def _unit_train(s0, period, tau, freq):
+    """``exp(l s0) / (1 - exp(l T))``, ``l = -1/tau + 2 pi i f``: the sum over every past boundary (complex, broadcast).
+
+    ``s0`` [s]: the age of the latest boundary; ``T`` [s]: the boundaries'
+    spacing. ``Im`` of it is the train of ``exp(-s/tau) sin(2 pi f s)``,
+    ``Re`` the train of ``exp(-s/tau) cos(2 pi f s)``.
+    """
+    lam = -1.0 / tau + 2j * math.pi * freq
+    return np.exp(lam * s0) / (1.0 - np.exp(lam * period))
+
+
 def impact_batch(grid, omega: float, amplitude, tau, freq, onset=0.0) -> np.ndarray:
     """The touchdown train on the extended grid for candidates (arrays ``(P,)``): ``(P, n_ext)`` [m/s^2].
 
@@ -85,11 +96,16 @@ def impact_batch(grid, omega: float, amplitude, tau, freq, onset=0.0) -> np.ndar
     tau = np.asarray(tau, dtype=float)[:, None]
     freq = np.asarray(freq, dtype=float)[:, None]
     onset = np.broadcast_to(np.asarray(onset, dtype=float), tau.shape[:1])[:, None]
+    return amplitude * np.imag(np.exp(1j * onset) * impact_basis(grid, omega, tau[:, 0], freq[:, 0]))
+
+
+def impact_basis(grid, omega: float, tau, freq) -> np.ndarray:
+    """The complex unit train ``(P, n_ext)`` on the extended grid (see :func:`impact_batch`): ``Im`` is the
+    train of ``sin(2 pi f s)`` transients, ``Re`` that of ``cos(2 pi f s)`` ones, for ``tau, freq (P,)``."""
     t = grid.time(omega)[None, :]
     period = 2 * grid.half / omega
     s0 = t - np.floor(t / period) * period
-    lam = -1.0 / tau + 2j * math.pi * freq
-    return amplitude * np.imag(np.exp(1j * onset + lam * s0) / (1.0 - np.exp(lam * period)))
+    return _unit_train(s0, period, np.asarray(tau, dtype=float)[:, None], np.asarray(freq, dtype=float)[:, None])
 
 
 class TouchdownImpactEffect(Effect):
@@ -106,10 +122,14 @@ class TouchdownImpactEffect(Effect):
     mode, damping ratio ~1.5%); a short one is visible to the diagnosis but
     not to ``Da``.
 
-    The prediction is linear in ``A``: the fit solves it in closed form with
-    the bias. The rigid half's residual against the nominal fit (whose
-    kinematics do not depend on the soil beyond the leg length) shows the
-    transient directly and seeds the fit.
+    The prediction is linear in ``a_sin = A cos(onset)`` and ``a_cos = A
+    sin(onset)`` (the transient is ``exp(-s/tau) (a_sin sin(2 pi f s) + a_cos
+    cos(2 pi f s))``): the fit solves both in closed form with the bias and
+    searches ``tau`` and ``f`` over wide ranges (0.005-8 s, 1-80 Hz). The
+    catalog's ``A`` takes the sign of ``a_sin``, so ``onset`` is in
+    ``[-pi/2, pi/2]``. The rigid half's residual against the nominal fit
+    (whose kinematics do not depend on the soil beyond the leg length) shows
+    the transient directly and seeds the fit.
     """
 
     name = "touchdown_impact"
@@ -129,57 +149,63 @@ class TouchdownImpactEffect(Effect):
                   "starts with a jump, a step of load)"),
     )
     fit_params = (
-        FitParam("amplitude", "m/s^2", -35.0, 35.0, linear=True, off=0.0),
-        FitParam("tau", "s", 0.01, 2.0, log=True, off=0.05),
-        FitParam("freq", "Hz", 3.0, 60.0, log=True, off=10.0),
+        FitParam("a_sin", "m/s^2", -35.0, 35.0, linear=True, off=0.0),
+        FitParam("a_cos", "m/s^2", -35.0, 35.0, linear=True, off=0.0),
+        FitParam("tau", "s", 0.005, 8.0, log=True, off=0.05),
+        FitParam("freq", "Hz", 1.0, 80.0, log=True, off=10.0),
     )
 
     def stage(self, values):
         return TouchdownImpact(values["amplitude"], values["tau"], values["freq"], onset=values["onset"])
 
     def catalog_values(self, fitted, soil, geometry):
-        return {**{k: fitted[k] for k in ("amplitude", "tau", "freq")}, "onset": np.zeros_like(fitted["tau"])}
+        a_sin, a_cos = np.asarray(fitted["a_sin"], dtype=float), np.asarray(fitted["a_cos"], dtype=float)
+        sign = np.where(a_sin < 0, -1.0, 1.0)
+        return {"amplitude": sign * np.hypot(a_sin, a_cos), "tau": fitted["tau"], "freq": fitted["freq"],
+                "onset": np.arctan2(sign * a_cos, sign * a_sin)}
 
     def sense(self, x, values, ctx):
         tau, freq = values["tau"], values["freq"]
         if ctx.solve_linear:
-            # the transient is linear in its amplitude: least squares with the bias, per candidate
+            # linear in a_sin and a_cos: least squares with the bias, per candidate
             m0 = ctx.bin_average(x)
-            h = np.zeros_like(m0)
+            h_sin, h_cos = np.zeros_like(m0), np.zeros_like(m0)
             for om, sel in ctx.speed_groups():
-                train = impact_batch(ctx.grid, om, np.ones(len(tau)), tau, freq)
-                h[:, sel] = ctx.bin_average(train[:, None, :])
-            amp = ctx.solve_amplitude(self.fit_params[0], m0, h)
-            return m0 + amp[:, None, None] * h
+                z = impact_basis(ctx.grid, om, tau, freq)[:, None, :]
+                h_sin[:, sel] = ctx.bin_average(z.imag)
+                h_cos[:, sel] = ctx.bin_average(z.real)
+            a_sin, a_cos = ctx.solve_amplitudes(self.fit_params[:2], m0, (h_sin, h_cos))
+            return m0 + a_sin[:, None, None] * h_sin + a_cos[:, None, None] * h_cos
         for om, sel in ctx.speed_groups():
-            x[:, sel] += impact_batch(ctx.grid, om, values["amplitude"], tau, freq)[:, None]
+            x[:, sel] += impact_batch(ctx.grid, om, values["amplitude"], tau, freq, values["onset"])[:, None]
         return ctx.bin_average(x)
 
     def signature_seeds(self, data):
         """The transient train fitted to the rigid half's mean residual against the nominal fit.
 
-        On a grid of ``tau`` x ``freq``, the amplitude in closed form; the
-        pair that reduces the squared residual most.
+        On a grid of ``tau`` x ``freq`` over the fit's ranges, ``a_sin``,
+        ``a_cos`` and a constant by least squares; the pair that reduces the
+        squared residual most.
         """
         grid = data.grid
         phi = grid.bin_centres
         r = data.mean_residual[: grid.nb_half]
         omega = data.omega
-        t = (phi[: grid.nb_half] + grid.half) / omega
+        t = (phi[: grid.nb_half] + grid.half) / omega  # age of the cycle's boundary [s]
         period = 2 * grid.half / omega
-        best = (0.0, None)
-        for tau in np.geomspace(0.02, 2.0, 16):
-            for f in np.geomspace(3.0, 60.0, 40):
-                n_back = int(math.ceil(14 * tau / period)) + 1
-                h = sum(
-                    np.where(t + j * period >= 0,
-                             np.exp(-(t + j * period) / tau) * np.sin(2 * math.pi * f * (t + j * period)), 0.0)
-                    for j in range(n_back + 1)
-                )
-                hh = float(h @ h)
-                if hh <= 0:
-                    continue
-                gain = float(r @ h) ** 2 / hh  # reduction of the squared residual
-                if gain > best[0]:
-                    best = (gain, {"amplitude": float(r @ h) / hh, "tau": float(tau), "freq": float(f)})
-        return [best[1]] if best[1] else []
+        tau_p, f_p = self.fit_params[2], self.fit_params[3]
+        tau = np.geomspace(tau_p.lo, tau_p.hi, 24)[:, None, None]
+        freq = np.geomspace(f_p.lo, f_p.hi, 60)[None, :, None]
+        z = _unit_train(t[None, None, :], period, tau, freq)  # (n_tau, n_f, bins)
+        X = np.stack([z.imag, z.real], axis=-1)
+        X -= X.mean(axis=2, keepdims=True)  # with a constant: regress the centred residual on centred columns
+        XtX = np.einsum("abik,abil->abkl", X, X)
+        Xtr = np.einsum("abik,i->abk", X, r - r.mean())
+        ridge = 1e-9 * np.trace(XtX, axis1=2, axis2=3)[..., None, None] * np.eye(2) + 1e-300
+        coef = np.linalg.solve(XtX + ridge, Xtr[..., None])[..., 0]
+        gain = np.einsum("abk,abk->ab", coef, Xtr)  # reduction of the squared residual
+        a, b = np.unravel_index(int(np.argmax(gain)), gain.shape)
+        if not gain[a, b] > 0:
+            return []
+        return [{"a_sin": float(coef[a, b, 0]), "a_cos": float(coef[a, b, 1]), "tau": float(tau[a, 0, 0]),
+                 "freq": float(freq[0, b, 0])}]
