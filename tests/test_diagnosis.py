@@ -446,6 +446,26 @@ def test_a_time_skew_at_changing_leg_speed_is_named_and_at_one_speed_left_to_the
     assert equivalent_effects(["time_skew"], np.full(10, 0.63)) == {}  # asked for alone: fitted
 
 
+def test_a_long_ringing_impact_builds_up_from_the_log_start_as_predicted():
+    """The train of touchdown transients at tau = 3 s is not steady in the log's first cycles: predicted so."""
+    soil = {"kS": 1000.0, "phiS": 0.55, "phiD": 0.40, "kappa": 0.3}
+    eff = {"name": "touchdown_impact", "amplitude": 15.0, "tau": 3.0, "freq": 9.0, "onset": 1.0}
+    cs = _cycles(_log(np.repeat([0.1, 0.3, 0.5], 3), soil=soil, effects=(eff,)))
+    assert list(cs.touchdowns) == list(range(2, 10))  # the stream's first sample is the first touchdown
+    ev = Evaluator(cs, np.arange(len(cs)), "touchdown_impact", Geometry())
+    truth = {"kS": 1000.0, "phiS": 0.55, "dphi": 0.15, "kappa": 0.3, "a_sin": 15 * math.cos(1.0),
+             "a_cos": 15 * math.sin(1.0), "tau": 3.0, "freq": 9.0}
+    pred, _ = ev.predict(ev.z_of(truth)[None])
+    resid = cs.y - pred[0][ev.group_of]
+    excess = np.sqrt(np.maximum(np.mean(resid**2, axis=1) - np.mean(noise_floor(cs).var_bin), 0.0)) / G
+    assert np.all(excess < 0.005)  # g, every cycle (a steady train would be 0.09 g off in the first)
+    steady = cs.subset(np.arange(len(cs)))
+    steady.touchdowns = np.full(len(cs), np.inf)
+    ev_s = Evaluator(steady, np.arange(len(cs)), "touchdown_impact", Geometry())
+    first = steady.y[0] - ev_s.predict(ev_s.z_of(truth)[None])[0][0][ev_s.group_of][0]
+    assert np.sqrt(np.mean(first**2)) / G > 0.03
+
+
 def test_speed_levels_group_jittered_speeds_and_split_ramps():
     from slipest.diagnosis.cycles import speed_levels
 

@@ -31,6 +31,13 @@ duration of its cycles (boundary to boundary; the median leaves out a
 cycle that straddles a change of speed, e.g. with an encoder offset; a ripple within the cycle
 averages out). A log at one speed level has the speed of the whole log, as
 before. ``prev_omega`` is the previous cycle's.
+
+``touchdowns`` counts the cycle boundaries (touchdowns of a leg) from the
+log's start up to and including the cycle's own start: the log's first
+boundary, or its first sample when that sits on one, is the first
+touchdown (a log that starts with the motion, as the simulator's do), so
+transients that build up over many cycles (a long-ringing touchdown
+impact) can be predicted from the log's start.
 """
 
 from __future__ import annotations
@@ -65,7 +72,9 @@ class CycleSet:
     y: ``(C, nb)`` bin averages of ``az`` [m/s^2]; count: samples per bin;
     slip, prev_slip: ``(C,)`` [-]; omega, prev_omega: ``(C,)`` leg speed
     of the cycle's speed level and of the previous cycle's [rad/s] (see the
-    module docstring; ``prev_omega`` defaults to ``omega``); log: ``(C,)``
+    module docstring; ``prev_omega`` defaults to ``omega``); touchdowns:
+    ``(C,)`` cycle boundaries since the log's start (see the module
+    docstring; default infinity: a long history); log: ``(C,)``
     log index; k: cycle number in its log;
     t0: ``(C,)`` start time [s]; speed: ``(C, nb)`` leg speed per bin from
     the encoder [rad/s]; noise: white-noise standard deviation of
@@ -87,10 +96,13 @@ class CycleSet:
     samples: list = field(default_factory=list, repr=False)
     dropped: int = 0
     prev_omega: np.ndarray | None = None
+    touchdowns: np.ndarray | None = None
 
     def __post_init__(self):
         if self.prev_omega is None:
             self.prev_omega = np.array(self.omega, dtype=float, copy=True)
+        if self.touchdowns is None:
+            self.touchdowns = np.full(len(self.slip), np.inf)
 
     def __len__(self) -> int:
         return len(self.slip)
@@ -111,6 +123,7 @@ class CycleSet:
             noise=self.noise,
             samples=[self.samples[i] for i in np.atleast_1d(idx)] if self.samples else [],
             prev_omega=self.prev_omega[idx],
+            touchdowns=self.touchdowns[idx],
         )
 
     @property
@@ -253,7 +266,15 @@ def cut_cycles(t, az, theta, slip, n_legs: int, grid: Grid | None = None, log_in
         samples=samples,
         dropped=sum(why.values()),
         prev_omega=prev_omegas,
+        touchdowns=_touchdowns(ks, k, phase, half),
     )
+
+
+def _touchdowns(ks, k, phase, half) -> np.ndarray:
+    """Cycle boundaries from the log's start up to each kept cycle's start (see the module docstring)."""
+    step = float(np.median(np.diff(phase[k == k[0]]))) if np.count_nonzero(k == k[0]) > 1 else 0.0
+    on_boundary = abs(phase[0] + half) <= 1.5 * abs(step)
+    return (np.asarray(ks) - k[0] + (1 if on_boundary else 0)).astype(float)
 
 
 def speed_levels(speeds, tol: float = SPEED_TOLERANCE) -> np.ndarray:
@@ -343,4 +364,5 @@ def concat(sets) -> CycleSet:
         samples=sum((s.samples for s in sets), []),
         dropped=sum(s.dropped for s in sets),
         prev_omega=np.concatenate([s.prev_omega for s in sets]),
+        touchdowns=np.concatenate([s.touchdowns for s in sets]),
     )

@@ -258,7 +258,9 @@ class Evaluator:
 
     Cycles with the same leg speed and slip (and, for effects with memory
     across the cycle boundary, the same previous slip and previous leg
-    speed: the previous stance is simulated at its own speed) share one prediction
+    speed: the previous stance is simulated at its own speed; for effects
+    with a history since the log's start, the same count of touchdowns when
+    that is within the effect's ``history_s``) share one prediction
     (a *group*), so the objective only needs the groups' means and one
     stance simulation per distinct slip. The evaluator is the
     :class:`~slipest.model.effects.base.PredictionContext` of the effect's
@@ -286,7 +288,12 @@ class Evaluator:
         pv = cycles.prev_slip[self.idx] if self.model.memory else sl
         om = np.round(cycles.omega[self.idx], 9)
         pom = np.round(cycles.prev_omega[self.idx], 9) if self.model.memory else om
-        keys = np.stack([om, pom, pv, sl], axis=1)
+        touch = np.full(len(self.idx), np.inf)
+        if self.model.history_s is not None:
+            # cycles whose history since the log's start matters: grouped by their count of touchdowns
+            n = cycles.touchdowns[self.idx]
+            touch = np.where(n * (2 * self.grid.half / cycles.omega[self.idx]) < self.model.history_s, n, np.inf)
+        keys = np.stack([om, pom, pv, sl, touch], axis=1)
         uniq, inv = np.unique(keys, axis=0, return_inverse=True)
         inv = inv.ravel()
         self.n_groups = len(uniq)
@@ -295,6 +302,7 @@ class Evaluator:
         self.g_prev_omega = uniq[:, 1]
         self.g_prev = uniq[:, 2]
         self.g_slip = uniq[:, 3]
+        self.g_touchdowns = uniq[:, 4]
         y = cycles.y[self.idx]
         self.g_n = np.bincount(inv, minlength=self.n_groups).astype(float)
         self.g_mean = np.stack([y[inv == g].mean(axis=0) for g in range(self.n_groups)])

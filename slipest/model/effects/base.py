@@ -131,13 +131,16 @@ class PredictionContext(Protocol):
     grid: the phase grid (:class:`slipest.diagnosis.predict.Grid`); bias0
     [m/s^2]: accelerometer bias assumed before sampled stages; noise_sigma
     [m/s^2]: white noise of one logged sample; solve_linear: solve the
-    effect's ``linear`` fit parameters in closed form.
+    effect's ``linear`` fit parameters in closed form; g_touchdowns: see
+    :attr:`Effect.history_s`.
     """
 
     grid: object
     bias0: float
     noise_sigma: float
     solve_linear: bool
+    #: ``(G,)`` cycle boundaries since the log's start up to each group's cycle (inf: a long history).
+    g_touchdowns: np.ndarray
 
     def speed_groups(self, previous: bool = False):
         """``(omega [rad/s], mask (G,))`` per distinct leg speed of the predicted groups; ``previous``:
@@ -170,6 +173,10 @@ class Effect:
         nonlinear sampled stage acting after it: clipping).
     search_steps: integration steps ``(coarse, search)`` [s] the fit needs
         instead of its defaults, or None.
+    history_s: how far back [s] the prediction of a cycle depends on the
+        log's start (transients that build up over many cycles), or None
+        (not at all): cycles closer to the start are predicted with their
+        count of touchdowns since it.
     """
 
     name: str = ""
@@ -181,6 +188,7 @@ class Effect:
     memory: bool = False
     bias_inside: bool = False
     search_steps: tuple[float, float] | None = None
+    history_s: float | None = None
 
     def __repr__(self) -> str:
         return f"<effect {self.name}>"

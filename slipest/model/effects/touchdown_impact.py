@@ -109,6 +109,16 @@ def impact_basis(grid, omega: float, tau, freq) -> np.ndarray:
     return _unit_train(s0, period, np.asarray(tau, dtype=float)[:, None], np.asarray(freq, dtype=float)[:, None])
 
 
+def _since_start(omega, grid, tau, freq, touchdowns) -> np.ndarray:
+    """``1 - exp(l n T)`` ``(P, G)``: the share of the steady train that ``n`` touchdowns since the log's start
+    (``touchdowns (G,)``, inf: a long history) have built up by a cycle's analysis bins."""
+    period = 2 * grid.half / omega
+    n = np.asarray(touchdowns, dtype=float)[None, :]
+    lam = -1.0 / np.asarray(tau, dtype=float)[:, None] + 2j * math.pi * np.asarray(freq, dtype=float)[:, None]
+    finite = np.isfinite(n)
+    return np.where(finite, 1.0 - np.exp(lam * np.where(finite, n, 0.0) * period), 1.0 + 0j)
+
+
 class TouchdownImpactEffect(Effect):
     """The next leg's touchdown at every cycle boundary excites a decaying hub transient.
 
@@ -127,6 +137,9 @@ class TouchdownImpactEffect(Effect):
     sin(onset)`` (the transient is ``exp(-s/tau) (a_sin sin(2 pi f s) + a_cos
     cos(2 pi f s))``): the fit solves both in closed form with the bias and
     searches ``tau`` and ``f`` over wide ranges (0.005-8 s, 1-80 Hz). The
+    train builds up from the log's start (its first touchdown,
+    :mod:`slipest.diagnosis.cycles`): a cycle ``n`` touchdowns in sees
+    ``1 - exp(-n T/tau)`` of the steady train's envelope. The
     catalog's ``A`` takes the sign of ``a_sin``, so ``onset`` is in
     ``[-pi/2, pi/2]``. The rigid half's residual against the nominal fit
     (whose kinematics do not depend on the soil beyond the leg length) shows
@@ -149,6 +162,7 @@ class TouchdownImpactEffect(Effect):
                   "onset phase: the transient's shape at touchdown (0: starts at zero, an impulse; pi/2: "
                   "starts with a jump, a step of load)"),
     )
+    history_s = 40.0  # 5 x the longest fitted tau: the train is steady to 0.7% after that
     fit_params = (
         FitParam("a_sin", "m/s^2", -35.0, 35.0, linear=True, off=0.0),
         FitParam("a_cos", "m/s^2", -35.0, 35.0, linear=True, off=0.0),
@@ -166,20 +180,22 @@ class TouchdownImpactEffect(Effect):
                 "onset": np.arctan2(sign * a_cos, sign * a_sin)}
 
     def sense(self, x, values, ctx):
-        tau, freq = values["tau"], values["freq"]
+        """Bin averages plus the train, per group ``m0 + a_sin Im(B) + a_cos Re(B)``, ``B`` the complex unit
+        train's bin averages times ``1 - exp(l n T)`` for a group ``n`` touchdowns from the log's start."""
+        tau, freq = np.asarray(values["tau"], dtype=float), np.asarray(values["freq"], dtype=float)
+        m0 = ctx.bin_average(x)
+        B = np.empty(m0.shape, dtype=complex)
+        for om, sel in ctx.speed_groups():
+            z = impact_basis(ctx.grid, om, tau, freq)[:, None, :]
+            b = ctx.bin_average(z.real) + 1j * ctx.bin_average(z.imag)  # (P, 1, nb)
+            B[:, sel] = b * _since_start(om, ctx.grid, tau, freq, ctx.g_touchdowns[sel])[:, :, None]
         if ctx.solve_linear:
             # linear in a_sin and a_cos: least squares with the bias, per candidate
-            m0 = ctx.bin_average(x)
-            h_sin, h_cos = np.zeros_like(m0), np.zeros_like(m0)
-            for om, sel in ctx.speed_groups():
-                z = impact_basis(ctx.grid, om, tau, freq)[:, None, :]
-                h_sin[:, sel] = ctx.bin_average(z.imag)
-                h_cos[:, sel] = ctx.bin_average(z.real)
-            a_sin, a_cos = ctx.solve_amplitudes(self.fit_params[:2], m0, (h_sin, h_cos))
-            return m0 + a_sin[:, None, None] * h_sin + a_cos[:, None, None] * h_cos
-        for om, sel in ctx.speed_groups():
-            x[:, sel] += impact_batch(ctx.grid, om, values["amplitude"], tau, freq, values["onset"])[:, None]
-        return ctx.bin_average(x)
+            a_sin, a_cos = ctx.solve_amplitudes(self.fit_params[:2], m0, (B.imag, B.real))
+        else:
+            amp, onset = np.asarray(values["amplitude"], dtype=float), np.asarray(values["onset"], dtype=float)
+            a_sin, a_cos = amp * np.cos(onset), amp * np.sin(onset)
+        return m0 + a_sin[:, None, None] * B.imag + a_cos[:, None, None] * B.real
 
     def signature_seeds(self, data):
         """The transient train fitted to the rigid half's mean residual against the nominal fit.
