@@ -46,7 +46,10 @@ Out-of-catalog effects (made up here, physically plausible):
   resonance (second structural mode), base excitation transmissibility
   ``H(s) = (1 + 2 z s/wn) / (1 + 2 z s/wn + s^2/wn^2)``, fn 10-15 Hz, z 0.03-0.08;
 * ``encoder_quantisation``: a coarse encoder, theta rounded to
-  ``2 pi / counts`` with counts 128-256 per revolution (no Da criterion).
+  ``2 pi / counts`` with counts 128-256 per revolution (no Da criterion;
+  the diagnosis interpolates such an angle between its count changes,
+  :func:`slipest.diagnosis.cycles.dequantize_angle`, so ``none`` is a right
+  answer too).
 
 The first two are drawn like catalog effects (Da changed by >= 10%).
 
