@@ -151,12 +151,15 @@ def test_verdict_logic_on_constructed_rankings():
         (None, {}),
         ("imu_lowpass", {"cutoff": 6.0, "order": 2}),
         ("angle_offset", {"offset": 0.15}),
-        ("touchdown_impact", {"amplitude": -12.0, "tau": 0.9, "freq": 11.0}),
+        ("touchdown_impact", {"a_sin": -12.0, "a_cos": 0.0, "tau": 0.9, "freq": 11.0}),
+        ("time_skew", {"skew": 0.22}),
     ],
 )
 def test_prediction_at_the_truth_matches_the_stream_within_noise(effect, values):
+    from slipest.diagnosis.fit import catalog_params
+
     soil = {"kS": 1100.0, "phiS": 0.6, "phiD": 0.42, "kappa": 0.33}
-    effects = ({"name": effect, **values},) if effect else ()
+    effects = ({"name": effect, **catalog_params(effect, {**soil, "dphi": 0.18, **values}, Geometry())},) if effect else ()
     s = _log([0.15, 0.15, 0.4, 0.4, 0.3, 0.3], soil=soil, effects=effects, noise=0.01)
     cs = _cycles(s)
     ev = Evaluator(cs, np.arange(len(cs)), effect, Geometry())
@@ -174,8 +177,14 @@ def test_prediction_at_the_truth_matches_the_stream_within_noise(effect, values)
     [
         ("contact_damping", {"c_hc": 300.0 * (G / 1100.0), "n_hc": 1.0}, {"b_hc": 300.0, "n_hc": 1.0}),
         ("stribeck", {"vs": 0.03, "delta": 2.0, "viscous": 0.5}, {"vs": 0.03, "delta": 2.0, "viscous": 0.5}),
-        ("speed_ripple", {"ripple_c": 0.2 * math.cos(0.6), "ripple_s": 0.2 * math.sin(0.6)},
-         {"amplitude": 0.2, "phase": 0.6}),
+        ("speed_ripple", {"ripple_c": 0.2 * math.cos(0.6), "ripple_s": 0.2 * math.sin(0.6), "harmonic": 1},
+         {"amplitude": 0.2, "phase": 0.6, "harmonic": 1}),
+        ("speed_ripple", {"ripple_c": 0.15 * math.cos(-2.0), "ripple_s": 0.15 * math.sin(-2.0), "harmonic": 3},
+         {"amplitude": 0.15, "phase": -2.0, "harmonic": 3}),
+        ("touchdown_impact", {"a_sin": 9.0 * math.cos(0.8), "a_cos": 9.0 * math.sin(0.8), "tau": 2.5, "freq": 7.0},
+         {"amplitude": 9.0, "tau": 2.5, "freq": 7.0, "onset": 0.8}),
+        ("touchdown_impact", {"a_sin": -6.0, "a_cos": 3.0, "tau": 0.3, "freq": 2.0},
+         {"amplitude": -math.hypot(6.0, 3.0), "tau": 0.3, "freq": 2.0, "onset": math.atan2(-3.0, 6.0)}),
         ("imu_saturation", {"full_scale": 12.5}, {"full_scale": 12.5}),
     ],
 )
@@ -190,9 +199,11 @@ def test_fit_parametrisation_maps_to_the_catalog_and_predicts_the_stream(effect,
     assert got.keys() == catalog.keys()
     for k, v in catalog.items():
         assert got[k] == pytest.approx(v, rel=1e-9, abs=1e-12)
-    s = _log([0.15, 0.15, 0.4, 0.4, 0.3, 0.3], soil=soil, effects=({"name": effect, **catalog},), noise=0.01)
+    # four warm-up cycles: the prediction is the steady train of touchdown transients (tau up to 2.5 s here)
+    s = _log([0.3] * 4 + [0.15, 0.15, 0.4, 0.4, 0.3, 0.3], soil=soil, effects=({"name": effect, **catalog},),
+             noise=0.01)
     cs = _cycles(s)
-    ev = Evaluator(cs, np.arange(len(cs)), effect, Geometry())
+    ev = Evaluator(cs, np.arange(4, len(cs)), effect, Geometry())
     mse, bias = ev.mse(ev.z_of(truth)[None])
     excess = math.sqrt(max(mse[0] - np.mean(noise_floor(cs).var_bin), 0.0)) / G
     assert excess < 0.005  # g: within the prediction's resampling error
@@ -209,7 +220,7 @@ def test_effects_at_their_fit_starts_predict_the_nominal_model():
     soil = {"kS": 1000.0, "phiS": 0.52, "dphi": 0.17, "kappa": 0.3}
     nominal = Evaluator(cs, np.arange(len(cs)), None, Geometry())
     ref, _ = nominal.predict(nominal.z_of(soil)[None])
-    for name in ("contact_damping", "speed_ripple", "touchdown_impact", "imu_saturation", "angle_offset"):
+    for name in ("contact_damping", "speed_ripple", "touchdown_impact", "imu_saturation", "angle_offset", "time_skew"):
         ev = Evaluator(cs, np.arange(len(cs)), name, Geometry())
         start = {fp.name: fp.start for fp in EFFECTS[name].fit_params}
         pred, ok = ev.predict(ev.z_of({**soil, **start})[None])
@@ -370,3 +381,143 @@ def test_cycles_binning_wrapped_angles_and_first_cycle():
     # the rigid half of a noise-free cycle: 1 g minus the small kinematic l w^2 cos(phi) (~0.007 g)
     rigid = cs.y[:, : GRID.nb_half] / G
     assert np.all(np.abs(rigid - 1.0) < 0.01)
+
+
+# --- widened parametrisations: ripple harmonic, impact shape, time skew ---------------------------------
+
+
+def _speed_log(slips, omega, soil=None, effects=(), noise=0.01, seed=3):
+    sc = Scenario.per_cycle(StickSlipParams(**(soil or {})), imu={"rate": 1000.0, "noise_g": noise, "seed": seed},
+                            slip=slips, omega=omega)
+    return simulate_stream(Scenario(cycles=sc.cycles, rate=1000.0, noise_g=noise, seed=seed, effects=tuple(effects)))
+
+
+def test_a_second_harmonic_ripple_is_named_with_its_harmonic():
+    soil = {"kS": 900.0, "phiS": 0.58, "phiD": 0.40, "kappa": 0.32}
+    s = _log(np.repeat([0.1, 0.25, 0.4, 0.5], 2), soil=soil,
+             effects=({"name": "speed_ripple", "amplitude": 0.2, "phase": 0.5, "harmonic": 2},), seed=5)
+    d = diagnose(_cycles(s), Geometry(), effects=["speed_ripple"], budget=FitBudget().scaled(0.5))
+    assert d.verdict == "speed_ripple"
+    p = d.ranking[0].params
+    assert p["harmonic"] == 2
+    assert p["amplitude"] == pytest.approx(0.2, abs=0.04)
+
+
+def test_a_long_ringing_impact_of_another_shape_is_fitted_inside_the_range():
+    """tau = 3 s and a 1 rad onset (the catalog draws tau 0.8-1.2 s, onset 0): not pinned at a bound."""
+    from slipest.diagnosis.fit import catalog_params, fit, fit_effect
+    from slipest.model.effects import EFFECTS
+
+    soil = {"kS": 900.0, "phiS": 0.58, "phiD": 0.40, "kappa": 0.32}
+    truth = {"name": "touchdown_impact", "amplitude": 12.0, "tau": 3.0, "freq": 9.0, "onset": 1.0}
+    s = _log(np.r_[[0.3] * 4, np.repeat([0.1, 0.3, 0.5], 2)], soil=soil, effects=(truth,), seed=4)
+    cs = _cycles(s)
+    idx = np.arange(4, len(cs))  # after the train of transients has built up
+    budget = FitBudget().scaled(0.5)
+    nominal = fit(cs, idx, None, Geometry(), budget=budget)
+    r = fit_effect(cs, idx, "touchdown_impact", Geometry(), nominal, budget=budget)
+    tau_range = next(p for p in EFFECTS["touchdown_impact"].fit_params if p.name == "tau")
+    got = catalog_params("touchdown_impact", r.values, Geometry())
+    assert tau_range.lo * 1.5 < got["tau"] < tau_range.hi / 1.5  # well inside the range, not at a bound
+    assert 2.0 < got["tau"] < 4.5  # tau is the least determined: one cycle lasts 2.5 s
+    assert got["freq"] == pytest.approx(9.0, rel=0.02)
+    assert got["onset"] == pytest.approx(1.0, abs=0.1)
+    assert got["amplitude"] == pytest.approx(12.0, rel=0.1)
+    assert r.mse_train < 0.05 * nominal.mse_train
+
+
+def test_a_time_skew_at_changing_leg_speed_is_named_and_at_one_speed_left_to_the_angle_offset():
+    from slipest.diagnosis.run import equivalent_effects
+
+    soil = {"kS": 900.0, "phiS": 0.58, "phiD": 0.40, "kappa": 0.32}
+    omega = np.repeat([0.5, 0.9, 0.6, 1.1, 0.7], 2)
+    s = _speed_log(np.repeat([0.1, 0.2, 0.3, 0.4, 0.5], 2), omega, soil=soil,
+                   effects=({"name": "time_skew", "skew": 0.2},))
+    cs = _cycles(s)
+    # each cycle has its speed level's speed, and its previous cycle's
+    np.testing.assert_allclose(cs.omega, omega[1:], rtol=2e-3)
+    np.testing.assert_allclose(cs.prev_omega, omega[:-1], rtol=2e-3)
+    d = diagnose(cs, Geometry(), effects=["time_skew", "angle_offset"], budget=FitBudget().scaled(0.25))
+    assert d.verdict == "time_skew" and not d.skipped
+    assert d.ranking[0].params["skew"] == pytest.approx(0.2, abs=0.02)
+    # at one leg speed the two are the same model: only the angle offset is fitted, and the report says why
+    one = equivalent_effects(["angle_offset", "time_skew"], np.full(10, 0.63))
+    assert list(one) == ["time_skew"] and "angle_offset" in one["time_skew"]
+    assert equivalent_effects(["time_skew"], np.full(10, 0.63)) == {}  # asked for alone: fitted
+
+
+def test_a_long_ringing_impact_builds_up_from_the_log_start_as_predicted():
+    """The train of touchdown transients at tau = 3 s is not steady in the log's first cycles: predicted so."""
+    soil = {"kS": 1000.0, "phiS": 0.55, "phiD": 0.40, "kappa": 0.3}
+    eff = {"name": "touchdown_impact", "amplitude": 15.0, "tau": 3.0, "freq": 9.0, "onset": 1.0}
+    cs = _cycles(_log(np.repeat([0.1, 0.3, 0.5], 3), soil=soil, effects=(eff,)))
+    assert list(cs.touchdowns) == list(range(2, 10))  # the stream's first sample is the first touchdown
+    ev = Evaluator(cs, np.arange(len(cs)), "touchdown_impact", Geometry())
+    truth = {"kS": 1000.0, "phiS": 0.55, "dphi": 0.15, "kappa": 0.3, "a_sin": 15 * math.cos(1.0),
+             "a_cos": 15 * math.sin(1.0), "tau": 3.0, "freq": 9.0}
+    pred, _ = ev.predict(ev.z_of(truth)[None])
+    resid = cs.y - pred[0][ev.group_of]
+    excess = np.sqrt(np.maximum(np.mean(resid**2, axis=1) - np.mean(noise_floor(cs).var_bin), 0.0)) / G
+    assert np.all(excess < 0.005)  # g, every cycle (a steady train would be 0.09 g off in the first)
+    steady = cs.subset(np.arange(len(cs)))
+    steady.touchdowns = np.full(len(cs), np.inf)
+    ev_s = Evaluator(steady, np.arange(len(cs)), "touchdown_impact", Geometry())
+    first = steady.y[0] - ev_s.predict(ev_s.z_of(truth)[None])[0][0][ev_s.group_of][0]
+    assert np.sqrt(np.mean(first**2)) / G > 0.03
+
+
+def test_speed_levels_group_jittered_speeds_and_split_ramps():
+    from slipest.diagnosis.cycles import speed_levels
+
+    rng = np.random.default_rng(0)
+    steady = 0.63 * (1 + 1e-3 * rng.normal(size=30))
+    assert len(set(speed_levels(steady))) == 1
+    lab = speed_levels(np.r_[steady, 0.9 * (1 + 1e-3 * rng.normal(size=5))])
+    assert len(set(lab)) == 2 and len(set(lab[:30])) == 1
+    ramp = np.linspace(0.5, 1.0, 40)
+    lab = speed_levels(ramp)
+    for v in set(lab):  # no level wider than twice the tolerance
+        member = ramp[lab == v]
+        assert np.log(member.max() / member.min()) <= 0.04 + 1e-12
+
+
+def test_solve_amplitudes_recovers_two_columns_and_the_bias():
+    s = _log([0.2, 0.2, 0.4, 0.4], noise=0.0)
+    cs = _cycles(s)
+    ev = Evaluator(cs, np.arange(len(cs)), None, Geometry())
+    rng = np.random.default_rng(1)
+    P, G, nb = 3, ev.n_groups, GRID.nb
+    m0 = rng.normal(size=(P, G, nb))
+    h1, h2 = rng.normal(size=(P, G, nb)), rng.normal(size=(P, G, nb))
+    ev.g_mean = m0[1] + 0.7 + 2.0 * h1[1] - 1.5 * h2[1]  # candidate 1 is exact
+    from slipest.model.effects import FitParam
+
+    a1, a2 = ev.solve_amplitudes((FitParam("a1", "-", -5, 5), FitParam("a2", "-", -5, 5)), m0, (h1, h2))
+    assert a1[1] == pytest.approx(2.0) and a2[1] == pytest.approx(-1.5)
+    assert ev.last_linear["a1"][1] == pytest.approx(2.0)
+    one = ev.solve_amplitude(FitParam("a1", "-", -1, 1), m0, h1)  # one column: clipped to its range
+    assert np.all(np.abs(one) <= 1.0)
+
+
+def test_per_edge_offsets_equal_a_constant_offset_when_constant():
+    from slipest.diagnosis.predict import bin_average_batch
+
+    x = np.random.default_rng(2).normal(size=(2, 3, GRID.n_ext))
+    off = np.array([0.1, -0.05])
+    np.testing.assert_allclose(bin_average_batch(GRID, x, np.repeat(off[:, None], GRID.nb + 1, axis=1)),
+                               bin_average_batch(GRID, x, off), atol=1e-12)
+
+
+def test_a_coarse_encoder_is_interpolated_between_its_count_changes():
+    from slipest.diagnosis.cycles import dequantize_angle
+
+    s = _log([0.2, 0.3, 0.3, 0.4], noise=0.005)
+    step = 2 * math.pi / 200  # 200 counts per revolution: the count changes every ~10 samples at 1 kHz
+    coarse = np.round(s.theta / step) * step
+    fine = dequantize_angle(s.t, coarse)
+    assert np.max(np.abs(coarse - s.theta)) > 0.4 * step
+    assert np.max(np.abs(fine - s.theta)) < 0.02 * step
+    np.testing.assert_array_equal(dequantize_angle(s.t, s.theta), s.theta)  # a fine encoder: unchanged
+    # the cycles of the coarse log are nearly those of the fine one (the diagnosis found 15-40 mg gaps before)
+    cq, cs = cut_cycles(s.t, s.az, coarse, s.slip, 4), _cycles(s)
+    assert np.sqrt(np.mean((cq.y - cs.y) ** 2)) / G < 0.003

@@ -33,6 +33,7 @@ NAMES = (
     "angle_offset",
     "touchdown_impact",
     "speed_ripple",
+    "time_skew",
 )
 
 
@@ -78,7 +79,8 @@ def test_each_effect_object_holds_its_pieces():
 
 def test_ripple_columns_are_the_kernel_fields():
     e = EFFECTS["speed_ripple"]
-    assert e.kernel_columns({"amplitude": 0.2, "phase": 0.7}) == {K.P_RIPPLE_A: 0.2, K.P_RIPPLE_PH: 0.7}
+    assert e.kernel_columns({"amplitude": 0.2, "phase": 0.7, "harmonic": 2}) == {
+        K.P_RIPPLE_A: 0.2, K.P_RIPPLE_PH: 0.7, K.P_RIPPLE_H: 2}
 
 
 # --- parsing -----------------------------------------------------------------------------------
@@ -284,3 +286,81 @@ def test_default_size_changes_da_by_ten_percent(name):
         assert p.moderate[0] <= p.default <= p.moderate[1] or p.integer
     sc = Scenario.per_cycle(StickSlipParams(), imu={"rate": 1000.0}, slip=[0.05, 0.1, 0.2, 0.3, 0.4, 0.5])
     assert da_change(sc, ({"name": name},)) >= 0.10
+
+
+# --- widened parametrisations: ripple harmonic, impact onset, time skew -------------------------------
+
+
+def test_speed_ripple_at_a_higher_harmonic_in_the_stance_and_the_stream():
+    spec = {"name": "speed_ripple", "amplitude": 0.15, "phase": -0.4, "harmonic": 3}
+    transform, _ = compile_effects([spec])
+    p = transform(StickSlipParams())
+    assert p.ripple_harmonic == 3 and p.to_row()[K.P_RIPPLE_H] == 3
+    r = simulate_stance(p)
+    dth = np.diff(r.theta) / r.dt
+    np.testing.assert_allclose(dth, 0.63 * (1 + 0.15 * np.sin(12 * r.theta[:-1] - 0.4)), rtol=1e-9)
+    s = simulate_stream(Scenario.constant(2, StickSlipParams(), rate=2000.0, effects=(spec,)))
+    w = np.diff(s.theta) * 2000.0
+    mid = 0.5 * (s.theta[1:] + s.theta[:-1])
+    np.testing.assert_allclose(w, 0.63 * (1 + 0.15 * np.sin(12 * mid - 0.4)), rtol=3e-3)
+    # an integer harmonic keeps the cycle period of the law (the same mean speed for any h)
+    one = simulate_stream(Scenario.constant(2, StickSlipParams(), rate=2000.0, effects=({**spec, "harmonic": 1},)))
+    assert s.t[-1] == pytest.approx(one.t[-1], abs=1e-3)
+    with pytest.raises(ValueError, match="ripple_harmonic"):
+        StickSlipParams(ripple_harmonic=1.5)
+    with pytest.raises(ValueError, match="harmonic.*integer"):
+        parse_effect_arg("speed_ripple:harmonic=2.5")
+
+
+def test_touchdown_impact_onset_phase_starts_with_a_jump():
+    n_legs, omega, fs = 4, 0.63, 1000.0
+    A, tau, f = 6.0, 1.5, 4.0
+    t = np.arange(0, 3.0, 1 / fs)
+    theta = -math.pi / 4 + omega * t
+    out, _ = TouchdownImpact(A, tau, f, n_legs, onset=math.pi / 2).apply(t, np.zeros_like(t), theta, None)
+    assert out[0] == pytest.approx(A)  # cos onset: the full amplitude at touchdown
+    s = 0.3
+    assert out[int(s * fs)] == pytest.approx(A * math.exp(-s / tau) * math.cos(2 * math.pi * f * s), abs=1e-9)
+    assert impact_response(np.array([0.0]), A, tau, f, onset=math.pi / 2)[0] == pytest.approx(A)
+    # the catalog's default onset (0) is the transient of before: starts at zero
+    stage = EFFECTS["touchdown_impact"].stage(EFFECTS["touchdown_impact"].defaults())
+    assert stage.onset == 0.0
+
+
+def test_time_skew_delays_az_against_theta_and_streams_in_chunks():
+    from slipest.model.effects import TimeSkew
+
+    fs = 1000.0
+    t = np.arange(4000) / fs
+    theta = -math.pi / 4 + 0.7 * t
+    az = 9.81 + np.sin(2 * math.pi * 3.0 * t)
+    for skew in (0.2374, -0.1337):
+        whole = TimeSkew(skew).apply(t, az, theta, None)
+        stage = TimeSkew(skew)
+        parts = [stage.apply(t[a:b], az[a:b], theta[a:b], None) for a, b in ((0, 2), (2, 700), (700, 701), (701, 4000))]
+        np.testing.assert_array_equal(np.concatenate([p[0] for p in parts]), whole[0])
+        np.testing.assert_array_equal(np.concatenate([p[1] for p in parts]), whole[1])
+        # away from the start, each logged pair holds az from `skew` seconds before its angle's time
+        late = t > 0.5
+        t_theta = (whole[1][late] + math.pi / 4) / 0.7  # the time the logged angle belongs to
+        expected = 9.81 + np.sin(2 * math.pi * 3.0 * (t_theta - skew))
+        np.testing.assert_allclose(whole[0][late], expected, atol=2e-3 if skew > 0 else 0.02)
+    # positive skew: az moved by whole samples (its noise is not smoothed)
+    stage = TimeSkew(0.2374)
+    noisy = np.random.default_rng(0).normal(size=t.size)
+    out, _ = stage.apply(t, noisy, theta, None)
+    np.testing.assert_array_equal(out[238:], noisy[:-238])
+
+
+def test_time_skew_is_an_angle_offset_at_one_leg_speed():
+    e = EFFECTS["time_skew"]
+    assert e.equivalent_on(np.full(20, 0.63)) == "angle_offset"
+    assert e.equivalent_on(np.repeat([0.5, 0.9, 0.7], 5)) is None
+    # at one speed the stream is that of an angle offset omega * skew (up to the sample grid)
+    sc = dict(rate=1000.0, noise_g=0.0)
+    a = simulate_stream(Scenario.constant(3, StickSlipParams(), effects=({"name": "time_skew", "skew": 0.2},), **sc))
+    b = simulate_stream(Scenario.constant(3, StickSlipParams(),
+                                          effects=({"name": "angle_offset", "offset": 0.63 * 0.2},), **sc))
+    m = 200  # the skew in whole samples: the skewed stream is the offset one, m samples later
+    np.testing.assert_allclose(a.az[m:], b.az[:-m], atol=1e-12)
+    np.testing.assert_allclose(a.theta[m:], b.theta[:-m], atol=1e-9)

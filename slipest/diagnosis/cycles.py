@@ -20,7 +20,26 @@ cycle) is dropped: its history is not the steady sequence the prediction
 assumes. Bins without samples (a coarse encoder repeats angles) are
 interpolated from their neighbours, if at least :data:`MIN_FILLED` of the
 bins hold samples. A cycle whose phase goes backwards (the rover reversing)
-or holds a non-finite ``az`` is dropped.
+or holds a non-finite ``az`` is dropped. A coarse encoder's angle (whole
+counts, repeated over several samples) is interpolated between its count
+changes first (:func:`dequantize_angle`).
+
+Each cycle's leg speed ``omega`` is the mean speed of its *speed level*:
+cycles whose speeds (least-squares slope of ``theta`` over the cycle)
+agree within :data:`SPEED_TOLERANCE` form one level (so a drive that holds
+its speed gives one level, and the prediction simulates one stance per
+level and slip), whose speed is the leg-cycle angle over the median
+duration of its cycles (boundary to boundary; the median leaves out a
+cycle that straddles a change of speed, e.g. with an encoder offset; a ripple within the cycle
+averages out). A log at one speed level has the speed of the whole log, as
+before. ``prev_omega`` is the previous cycle's.
+
+``touchdowns`` counts the cycle boundaries (touchdowns of a leg) from the
+log's start up to and including the cycle's own start: the log's first
+boundary, or its first sample when that sits on one, is the first
+touchdown (a log that starts with the motion, as the simulator's do), so
+transients that build up over many cycles (a long-ringing touchdown
+impact) can be predicted from the log's start.
 """
 
 from __future__ import annotations
@@ -34,6 +53,9 @@ from slipest.diagnosis.predict import Grid
 
 #: Fewest share of the analysis bins a cycle's samples must fill (the rest are interpolated).
 MIN_FILLED = 0.1
+
+#: Relative spread of leg speeds [-] within which cycles share one speed level (see the module docstring).
+SPEED_TOLERANCE = 0.02
 
 #: Why a leg cycle of a log is not used (counted, and named when no cycle is left).
 DROP_REASONS = ("incomplete", "no reference slip", "first of the log", "backwards or non-finite az")
@@ -50,8 +72,12 @@ class CycleSet:
     """Binned cycles of one or more logs.
 
     y: ``(C, nb)`` bin averages of ``az`` [m/s^2]; count: samples per bin;
-    slip, prev_slip: ``(C,)`` [-]; omega: ``(C,)`` mean leg speed of the
-    cycle's log [rad/s]; log: ``(C,)`` log index; k: cycle number in its log;
+    slip, prev_slip: ``(C,)`` [-]; omega, prev_omega: ``(C,)`` leg speed
+    of the cycle's speed level and of the previous cycle's [rad/s] (see the
+    module docstring; ``prev_omega`` defaults to ``omega``); touchdowns:
+    ``(C,)`` cycle boundaries since the log's start (see the module
+    docstring; default infinity: a long history); log: ``(C,)``
+    log index; k: cycle number in its log;
     t0: ``(C,)`` start time [s]; speed: ``(C, nb)`` leg speed per bin from
     the encoder [rad/s]; noise: white-noise standard deviation of
     one sample [m/s^2] per log (median absolute second difference);
@@ -71,6 +97,14 @@ class CycleSet:
     noise: np.ndarray
     samples: list = field(default_factory=list, repr=False)
     dropped: int = 0
+    prev_omega: np.ndarray | None = None
+    touchdowns: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.prev_omega is None:
+            self.prev_omega = np.array(self.omega, dtype=float, copy=True)
+        if self.touchdowns is None:
+            self.touchdowns = np.full(len(self.slip), np.inf)
 
     def __len__(self) -> int:
         return len(self.slip)
@@ -90,6 +124,8 @@ class CycleSet:
             speed=self.speed[idx],
             noise=self.noise,
             samples=[self.samples[i] for i in np.atleast_1d(idx)] if self.samples else [],
+            prev_omega=self.prev_omega[idx],
+            touchdowns=self.touchdowns[idx],
         )
 
     @property
@@ -139,6 +175,7 @@ def cut_cycles(t, az, theta, slip, n_legs: int, grid: Grid | None = None, log_in
                          f"NaN). {NEEDS_SLIP}")
     if np.any(np.diff(theta) < -math.pi):
         theta = np.unwrap(theta)  # a wrapped angle ([-pi, pi) or [0, 2 pi)) unwrapped; 0 stays at a midstance
+    theta = dequantize_angle(t, theta)
     k = np.floor((theta + half) / (2 * half)).astype(np.int64)
     phase = theta - 2 * half * k
     noise = sample_noise(az)
@@ -204,19 +241,26 @@ def cut_cycles(t, az, theta, slip, n_legs: int, grid: Grid | None = None, log_in
     slips = np.array(slips)
     prev = np.array([slip_of_k[kk - 1] for kk in ks])
     prev = np.where(np.isfinite(prev), prev, slips)
-    # mean leg speed over whole cycles (a drive ripple within the cycle averages out)
+    # mean leg speed over whole cycles (a drive ripple within the cycle averages out), per speed level
     t0a = np.array(t0s)
     if len(ks) >= 2 and ks[-1] > ks[0]:
         omega = 2 * half * (ks[-1] - ks[0]) / (t0a[-1] - t0a[0])
     else:
         omega = (theta[-1] - theta[0]) / (t[-1] - t[0])
+    level_speed = _level_speeds(t, theta, starts, ends, k, half)
+    if len(set(level_speed.values())) <= 1:
+        omegas = np.full(len(ks), omega)  # one speed level: the whole log's mean speed
+        prev_omegas = omegas.copy()
+    else:
+        omegas = np.array([level_speed.get(int(kk), omega) for kk in ks])
+        prev_omegas = np.array([level_speed.get(int(kk) - 1, om) for kk, om in zip(ks, omegas)])
     return CycleSet(
         grid=grid,
         y=np.array(ys),
         count=np.array(counts),
         slip=slips,
         prev_slip=prev,
-        omega=np.full(len(ks), omega),
+        omega=omegas,
         log=np.full(len(ks), log_index),
         k=ks,
         t0=np.array(t0s),
@@ -224,7 +268,96 @@ def cut_cycles(t, az, theta, slip, n_legs: int, grid: Grid | None = None, log_in
         noise=np.array([noise]),
         samples=samples,
         dropped=sum(why.values()),
+        prev_omega=prev_omegas,
+        touchdowns=_touchdowns(ks, k, phase, half),
     )
+
+
+#: Share of consecutive samples repeating the previous angle exactly above which the encoder counts whole steps.
+QUANTIZED_SHARE = 0.5
+
+
+def dequantize_angle(t, theta) -> np.ndarray:
+    """The angle [rad] of an encoder that reports whole counts, interpolated between its count changes.
+
+    When at least :data:`QUANTIZED_SHARE` of consecutive samples repeat the
+    previous angle exactly (a coarse encoder: the count changes every few
+    samples), the true angle crossed the midpoint of two counts (a rounding
+    encoder) between the two samples where the count changes: the angle at
+    each sample is interpolated between those instants (midpoints of the two
+    samples' times) at those midpoint angles, and extrapolated at the ends
+    along the first and last such segment. Otherwise ``theta`` unchanged.
+    """
+    t = np.asarray(t, dtype=float)
+    theta = np.asarray(theta, dtype=float)
+    d = np.diff(theta)
+    if d.size < 3 or np.mean(d == 0) < QUANTIZED_SHARE:
+        return theta
+    ch = np.flatnonzero(d != 0)
+    if ch.size < 2:
+        return theta
+    tc = 0.5 * (t[ch] + t[ch + 1])
+    vc = 0.5 * (theta[ch] + theta[ch + 1])
+    out = np.interp(t, tc, vc)
+    lo, hi = t < tc[0], t > tc[-1]
+    out[lo] = vc[0] + (t[lo] - tc[0]) * (vc[1] - vc[0]) / (tc[1] - tc[0])
+    out[hi] = vc[-1] + (t[hi] - tc[-1]) * (vc[-1] - vc[-2]) / (tc[-1] - tc[-2])
+    return out
+
+
+def _touchdowns(ks, k, phase, half) -> np.ndarray:
+    """Cycle boundaries from the log's start up to each kept cycle's start (see the module docstring)."""
+    step = float(np.median(np.diff(phase[k == k[0]]))) if np.count_nonzero(k == k[0]) > 1 else 0.0
+    on_boundary = abs(phase[0] + half) <= 1.5 * abs(step)
+    return (np.asarray(ks) - k[0] + (1 if on_boundary else 0)).astype(float)
+
+
+def speed_levels(speeds, tol: float = SPEED_TOLERANCE) -> np.ndarray:
+    """Level label ``(n,)`` of each speed (> 0): sorted speeds split where they jump by more than ``tol``
+    (relative), and a level wider than ``2 tol`` split evenly in log speed (a ramp)."""
+    speeds = np.asarray(speeds, dtype=float)
+    labels = np.zeros(len(speeds), dtype=np.int64)
+    if len(speeds) == 0:
+        return labels
+    order = np.argsort(speeds)
+    ls = np.log(speeds[order])
+    cut = np.flatnonzero(np.diff(ls) > tol) + 1
+    next_label = 0
+    for seg in np.split(np.arange(len(ls)), cut):
+        width = ls[seg[-1]] - ls[seg[0]]
+        n_sub = max(1, int(math.ceil(width / (2 * tol) - 1e-12)))
+        sub = np.minimum(((ls[seg] - ls[seg[0]]) / (width / n_sub) if width > 0 else 0 * seg).astype(np.int64),
+                         n_sub - 1)
+        labels[order[seg]] = next_label + sub
+        next_label += n_sub
+    return labels
+
+
+def _level_speeds(t, theta, starts, ends, k, half) -> dict:
+    """Cycle number -> its speed level's speed [rad/s] (see the module docstring), for every cut segment
+    with at least 3 samples and a positive speed."""
+    rough, ks = [], []
+    for s0, s1 in zip(starts, ends):
+        if s1 - s0 < 3:
+            continue
+        tt, th = t[s0:s1], theta[s0:s1]
+        slope = np.polyfit(tt - tt[0], th, 1)[0]
+        if slope > 0 and np.isfinite(slope):
+            rough.append(slope)
+            ks.append(int(k[s0]))
+    if not ks:
+        return {}
+    labels = speed_levels(np.array(rough))
+    start_of = {int(k[s0]): t[s0] for s0 in starts[1:]}  # the log's first segment may start mid-cycle
+    out = {}
+    for lab in np.unique(labels):
+        members = [kk for kk, lb in zip(ks, labels) if lb == lab]
+        durations = [start_of[kk + 1] - start_of[kk] for kk in members if kk + 1 in start_of and kk in start_of]
+        durations = [d for d in durations if d > 0]
+        speed = 2 * half / float(np.median(durations)) if durations else float(np.mean(
+            [r for r, lb in zip(rough, labels) if lb == lab]))
+        out.update({kk: speed for kk in members})
+    return out
 
 
 def _no_cycle_message(why: dict, n_legs: int) -> str:
@@ -265,4 +398,6 @@ def concat(sets) -> CycleSet:
         noise=np.array(noise),
         samples=sum((s.samples for s in sets), []),
         dropped=sum(s.dropped for s in sets),
+        prev_omega=np.concatenate([s.prev_omega for s in sets]),
+        touchdowns=np.concatenate([s.touchdowns for s in sets]),
     )

@@ -74,7 +74,7 @@ def catalog_params(effect: str | None, values: dict, geometry: Geometry) -> dict
     fitted = {p.name: float(values[p.name]) for p in model.fit_params}
     soil = {n: float(values[n]) for n in SOIL_NAMES}
     cat = model.catalog_values(fitted, soil, geometry)
-    return {p.name: (int(round(cat[p.name])) if p.integer else float(cat[p.name])) for p in model.params}
+    return {p.name: (int(round(float(cat[p.name]))) if p.integer else float(cat[p.name])) for p in model.params}
 
 
 @dataclass

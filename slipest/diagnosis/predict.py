@@ -222,13 +222,20 @@ def rigid_batch(grid: Grid, leg: np.ndarray, omega: np.ndarray) -> np.ndarray:
 
 
 def bin_average_batch(grid: Grid, x: np.ndarray, offset=None) -> np.ndarray:
-    """:func:`bin_average` of ``x (P, G, n_ext)`` with an encoder offset per candidate ``(P,)`` [rad] (or none)."""
+    """Averages of ``x (P, G, n_ext)`` over the analysis bins ``(P, G, nb)``, the encoder reading ``offset`` [rad] ahead.
+
+    offset: none, one per candidate ``(P,)``, or one per candidate and bin
+    edge ``(P, nb + 1)`` (a warped encoder: the bin edge at logged phase
+    ``e`` sits at true phase ``e - offset``; increasing in ``e``).
+    """
     P, G, n = x.shape
     if offset is None:
         r = grid.m // grid.nb_half
         return x[:, :, grid.m : 3 * grid.m].reshape(P, G, grid.nb, r).mean(axis=3)
     offset = np.asarray(offset, dtype=float)
-    pos = (grid.bin_edges[None, :] - offset[:, None] + 2 * grid.half) / grid.dpsi  # (P, nb+1)
+    if offset.ndim == 1:
+        offset = offset[:, None]
+    pos = (grid.bin_edges[None, :] - offset + 2 * grid.half) / grid.dpsi  # (P, nb+1)
     pos = np.clip(pos, 0.0, n - 1e-9)
     i = np.floor(pos).astype(np.int64)
     frac = pos - i
@@ -250,7 +257,10 @@ class Evaluator:
     candidates.
 
     Cycles with the same leg speed and slip (and, for effects with memory
-    across the cycle boundary, the same previous slip) share one prediction
+    across the cycle boundary, the same previous slip and previous leg
+    speed: the previous stance is simulated at its own speed; for effects
+    with a history since the log's start, the same count of touchdowns when
+    that is within the effect's ``history_s``) share one prediction
     (a *group*), so the objective only needs the groups' means and one
     stance simulation per distinct slip. The evaluator is the
     :class:`~slipest.model.effects.base.PredictionContext` of the effect's
@@ -277,25 +287,34 @@ class Evaluator:
         sl = cycles.slip[self.idx]
         pv = cycles.prev_slip[self.idx] if self.model.memory else sl
         om = np.round(cycles.omega[self.idx], 9)
-        keys = np.stack([om, pv, sl], axis=1)
+        pom = np.round(cycles.prev_omega[self.idx], 9) if self.model.memory else om
+        touch = np.full(len(self.idx), np.inf)
+        if self.model.history_s is not None:
+            # cycles whose history since the log's start matters: grouped by their count of touchdowns
+            n = cycles.touchdowns[self.idx]
+            touch = np.where(n * (2 * self.grid.half / cycles.omega[self.idx]) < self.model.history_s, n, np.inf)
+        keys = np.stack([om, pom, pv, sl, touch], axis=1)
         uniq, inv = np.unique(keys, axis=0, return_inverse=True)
         inv = inv.ravel()
         self.n_groups = len(uniq)
         self.group_of = inv
         self.g_omega = uniq[:, 0]
-        self.g_prev = uniq[:, 1]
-        self.g_slip = uniq[:, 2]
+        self.g_prev_omega = uniq[:, 1]
+        self.g_prev = uniq[:, 2]
+        self.g_slip = uniq[:, 3]
+        self.g_touchdowns = uniq[:, 4]
         y = cycles.y[self.idx]
         self.g_n = np.bincount(inv, minlength=self.n_groups).astype(float)
         self.g_mean = np.stack([y[inv == g].mean(axis=0) for g in range(self.n_groups)])
         self.within = float(np.sum((y - self.g_mean[inv]) ** 2))
         self.n_values = y.size
-        sims = np.unique(np.concatenate([np.stack([self.g_omega, self.g_slip], 1), np.stack([self.g_omega, self.g_prev], 1)]), axis=0)
+        sims = np.unique(np.concatenate([np.stack([self.g_omega, self.g_slip], 1),
+                                         np.stack([self.g_prev_omega, self.g_prev], 1)]), axis=0)
         self.sim_omega = sims[:, 0]
         self.sim_slip = sims[:, 1]
         lookup = {(o, s): j for j, (o, s) in enumerate(map(tuple, sims))}
         self.g_sim = np.array([lookup[(o, s)] for o, s in zip(self.g_omega, self.g_slip)])
-        self.g_sim_prev = np.array([lookup[(o, s)] for o, s in zip(self.g_omega, self.g_prev)])
+        self.g_sim_prev = np.array([lookup[(o, s)] for o, s in zip(self.g_prev_omega, self.g_prev)])
         self._base = geometry.base_row()
         self.n_evals = 0
         self._cache = None
@@ -388,10 +407,15 @@ class Evaluator:
         return mse, bias
 
     # --- the effect's prediction context (slipest.model.effects.base.PredictionContext) -----------------
-    def speed_groups(self):
-        """``(omega, mask (G,))`` per distinct mean leg speed of the groups."""
-        for om in np.unique(self.g_omega):
-            yield om, self.g_omega == om
+    def speed_groups(self, previous: bool = False):
+        """``(omega, mask (G,))`` per distinct leg speed of the groups; ``previous``: ``(omega, prev_omega, mask)``
+        per distinct pair of the cycles' and their previous cycles' speeds."""
+        if not previous:
+            for om in np.unique(self.g_omega):
+                yield om, self.g_omega == om
+            return
+        for om, pom in np.unique(np.stack([self.g_omega, self.g_prev_omega], axis=1), axis=0):
+            yield om, pom, (self.g_omega == om) & (self.g_prev_omega == pom)
 
     def bin_average(self, x: np.ndarray, offset=None) -> np.ndarray:
         """:func:`bin_average_batch` on this evaluator's grid."""
@@ -402,14 +426,34 @@ class Evaluator:
 
         Recorded in :attr:`last_linear` under ``param.name``.
         """
+        return self.solve_amplitudes((param,), m0, (h,))[0]
+
+    def solve_amplitudes(self, params, m0: np.ndarray, hs) -> list[np.ndarray]:
+        """Least-squares ``A_k (P,)`` of ``group means ~ b + m0 + sum_k A_k h_k`` (weights: cycles per group).
+
+        ``params``: one :class:`FitParam` per column ``hs[k] (P, G, nb)``;
+        each amplitude is clipped to its parameter's range (after the joint
+        solve) and recorded in :attr:`last_linear` under its name. A column
+        the data cannot tell from the others gets a minimum-norm share (a
+        tiny ridge).
+        """
         w = self.g_n[None, :, None]
         r = self.g_mean[None] - m0
-        # normal equations of r ~ b + A h, weights n_g, summed over groups and bins
-        s1 = float(np.sum(self.g_n)) * self.grid.nb
-        sh, shh = np.sum(w * h, axis=(1, 2)), np.sum(w * h * h, axis=(1, 2))
-        sr, shr = np.sum(w * r, axis=(1, 2)), np.sum(w * h * r, axis=(1, 2))
-        det = s1 * shh - sh * sh
-        amp = np.where(det > 1e-12, (s1 * shr - sh * sr) / np.where(det > 1e-12, det, 1.0), 0.0)
-        amp = np.clip(amp, param.lo, param.hi)
-        self.last_linear[param.name] = amp
-        return amp
+        # normal equations of r ~ b + sum_k A_k h_k, weights n_g, summed over groups and bins
+        cols = [np.ones_like(m0)] + list(hs)
+        k = len(cols)
+        M = np.empty((m0.shape[0], k, k))
+        v = np.empty((m0.shape[0], k))
+        for i in range(k):
+            v[:, i] = np.sum(w * cols[i] * r, axis=(1, 2))
+            for j in range(i, k):
+                M[:, i, j] = M[:, j, i] = np.sum(w * cols[i] * cols[j], axis=(1, 2))
+        diag = np.einsum("pii->pi", M)
+        M = M + (1e-10 * diag.max(axis=1) + 1e-300)[:, None, None] * np.eye(k)
+        coef = np.linalg.solve(M, v[..., None])[..., 0]
+        out = []
+        for i, param in enumerate(params):
+            amp = np.clip(np.where(np.isfinite(coef[:, i + 1]), coef[:, i + 1], 0.0), param.lo, param.hi)
+            self.last_linear[param.name] = amp
+            out.append(amp)
+        return out

@@ -12,8 +12,8 @@ fitted constant bias. With ``r`` those residuals [m/s^2]::
 i.e. the RMS model error in excess of the measurement noise, where
 ``s_noise^2`` is the variance of one cycle's bin average about what the
 cycle would show without noise: estimated from the data by
-*repeatability* (cycles of one log with equal slip and equal previous slip
-are deterministic copies in the model; their pooled within-group variance)
+*repeatability* (cycles of one log with equal slip, previous slip and leg
+speeds are deterministic copies in the model; their pooled within-group variance)
 when at least :data:`MIN_REPEAT_DOF` such degrees of freedom exist, else
 from the white-noise level of the raw samples (median absolute second
 difference) divided by the samples per bin. A model that explains the data
@@ -132,9 +132,10 @@ class NoiseFloor:
 
 
 def noise_floor(cycles: CycleSet, min_dof: int = MIN_REPEAT_DOF) -> NoiseFloor:
-    """Estimate the bin noise from repeatability (equal slip and previous slip, same log) or white noise."""
+    """Estimate the bin noise from repeatability (equal slip, previous slip and leg speeds, same log) or white noise."""
     white = cycles.noise_bin
-    keys = np.stack([cycles.log.astype(float), np.round(cycles.prev_slip, 6), np.round(cycles.slip, 6)], axis=1)
+    keys = np.stack([cycles.log.astype(float), np.round(cycles.prev_slip, 6), np.round(cycles.slip, 6),
+                     np.round(cycles.omega, 9), np.round(cycles.prev_omega, 9)], axis=1)
     _, inv = np.unique(keys, axis=0, return_inverse=True)
     inv = inv.ravel()
     ss, dof = 0.0, 0

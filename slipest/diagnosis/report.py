@@ -47,6 +47,7 @@ def to_dict(d: Diagnosis, logs=()) -> dict:
         "where": d.where,
         "ranking": [c.as_dict() for c in d.ranking],
         "effects_fitted": d.effects_fitted,
+        "effects_skipped": d.skipped,
         "nominal": {
             "soil": d.nominal.soil(),
             "bias": d.nominal.bias,
@@ -144,6 +145,8 @@ def summary(d: Diagnosis) -> str:
         )
     elif not d.effects_fitted:
         lines.append("which: not fitted (the nominal model explains the data within noise)")
+    for name, why in d.skipped.items():
+        lines.append(f"  not fitted: {name}, {why}")
     lines.append(f"elapsed: {d.elapsed_s:.1f} s")
     return "\n".join(lines)
 

@@ -11,7 +11,10 @@ and the known hardware (:class:`slipest.diagnosis.fit.Geometry`) and
 3. localises that gap by leg-angle window, feature and slip level
    (:mod:`slipest.diagnosis.localize`);
 4. unless the nominal model already explains the data within noise, fits
-   soil + each catalog effect on the training cycles
+   soil + each catalog effect on the training cycles (except an effect the
+   data cannot tell from another one that is fitted:
+   :meth:`~slipest.model.effects.base.Effect.equivalent_on`, e.g. a time
+   skew at one leg speed is an angle offset; listed in ``skipped``)
    (:func:`slipest.diagnosis.fit.fit_effect`) and measures each held-out
    gap; re-fits the nominal model from the soils those fits found (so that
    no effect gets credit for a better soil alone; the better nominal fit,
@@ -61,6 +64,8 @@ class Diagnosis:
     where: localisation of the nominal model's held-out gap (and of the best
     effect's, under ``"after"``). predictions: held-out predictions
     ``(C_test, nb)`` [m/s^2] of the nominal model and of each fitted effect.
+    skipped: effects not fitted because these cycles cannot tell them from
+    another fitted one -> the reason.
     """
 
     verdict: str
@@ -80,6 +85,7 @@ class Diagnosis:
     fits: dict = field(default_factory=dict)
     effects_fitted: bool = True
     elapsed_s: float = 0.0
+    skipped: dict = field(default_factory=dict)
 
     @property
     def best(self) -> Candidate | None:
@@ -94,6 +100,22 @@ def _where(cycles: CycleSet, idx, pred, var, split: Split) -> dict:
         "features": localize.by_feature(cycles.y[idx], pred, cycles.slip[idx], cycles.grid, omega),
         "slip_levels": localize.by_slip(resid, var, cycles.slip[idx], split.heldout_levels),
     }
+
+
+def equivalent_effects(effects, omega) -> dict:
+    """Effects of ``effects`` the cycles (leg speeds ``omega`` [rad/s]) cannot tell from another one in ``effects``.
+
+    Returns name -> reason. Only the effect that names the other as its
+    equivalent is dropped (``Effect.equivalent_on``), so one of a pair stays.
+    """
+    out = {}
+    omega = np.asarray(omega, dtype=float)
+    for name in effects:
+        other = EFFECTS[name].equivalent_on(omega)
+        if other is not None and other in effects and other not in out:
+            out[name] = (f"the same as {other} on these cycles (leg speed {np.nanmin(omega):.3g}-"
+                         f"{np.nanmax(omega):.3g} rad/s); fitted as {other}")
+    return out
 
 
 def planned_units(effects, budget: FitBudget) -> int:
@@ -118,6 +140,8 @@ def diagnose(
     unknown = [e for e in effects if e not in EFFECTS]
     if unknown:
         raise ValueError(f"unknown effect(s) {unknown}; known: {', '.join(ORDER)}")
+    skipped = equivalent_effects(effects, cycles.omega)
+    effects = [e for e in effects if e not in skipped]
     split = split_cycles(cycles.slip)
     noise = noise_floor(cycles)
     var_test = noise.var_bin[split.test]
@@ -205,4 +229,5 @@ def diagnose(
         fits=fits,
         effects_fitted=fitted,
         elapsed_s=time.perf_counter() - t_start,
+        skipped=skipped,
     )

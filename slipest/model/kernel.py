@@ -34,7 +34,8 @@ sim-to-real diagnosis can switch on (all off at their neutral values):
   clamped at zero while in compression (no adhesion);
 * Stribeck friction: ``mu(v) = muD + (muS - muD) exp(-(|v|/vs)^delta)`` plus a
   viscous force ``sigma_v v`` [N s/m] (``vs = 0`` means constant ``muD``);
-* drive speed ripple: ``omega(th) = omega0 (1 + A sin(nL th + phase))``.
+* drive speed ripple: ``omega(th) = omega0 (1 + A sin(h nL th + phase))``, ``h`` its harmonic of
+  the leg-cycle frequency (an integer >= 1, so that the ripple repeats every cycle).
 
 Parameters come as one row per batch element of a float64 matrix whose
 columns are named by the ``P_*`` indices below (kept in one place so that
@@ -67,7 +68,8 @@ P_SEXP = 14  # Stribeck exponent delta [-]
 P_VISC = 15  # viscous friction sigma_v [N s/m]
 P_RIPPLE_A = 16  # relative amplitude of the drive speed ripple [-]
 P_RIPPLE_PH = 17  # phase of the drive speed ripple [rad]
-N_PARAMS = 18
+P_RIPPLE_H = 18  # harmonic of the drive speed ripple: ripples per leg cycle [-] (integer >= 1)
+N_PARAMS = 19
 
 # --- recorded channels of a waveform ----------------------------------------
 CH_THETA = 0  # leg angle [rad]
@@ -108,8 +110,8 @@ _INLINE = dict(cache=True, inline="always", error_model="numpy")
 
 
 @numba.njit(**_INLINE)
-def _omega_at(omega0, ripple_a, ripple_ph, n_legs, th):
-    return omega0 * (1.0 + ripple_a * math.sin(n_legs * th + ripple_ph))
+def _omega_at(omega0, ripple_a, ripple_ph, ripple_k, th):
+    return omega0 * (1.0 + ripple_a * math.sin(ripple_k * th + ripple_ph))
 
 
 @numba.njit(**_INLINE)
@@ -202,6 +204,7 @@ def integrate_stance(p, dt, max_steps, res, rec):
     g = p[P_G]
     ripple_a = p[P_RIPPLE_A]
     ripple_ph = p[P_RIPPLE_PH]
+    ripple_k = n_legs * p[P_RIPPLE_H]  # ripples per radian of leg angle
     th_end = math.pi / n_legs
 
     # static equilibrium at midstance: the spring carries the hub's weight
@@ -241,7 +244,7 @@ def integrate_stance(p, dt, max_steps, res, rec):
         if constant_speed:
             omega = omega0
         else:
-            omega = _omega_at(omega0, ripple_a, ripple_ph, n_legs, th)
+            omega = _omega_at(omega0, ripple_a, ripple_ph, ripple_k, th)
             s = math.sin(th)
             c = math.cos(th)
         vxh = (1.0 - slip) * ls * omega * c

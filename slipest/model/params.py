@@ -40,7 +40,8 @@ class StickSlipParams:
     stribeck_vs: Stribeck velocity [m/s] (0: constant ``muD``);
     stribeck_exp: Stribeck exponent [-]; viscous: viscous friction [N s/m].
     ripple_amp: relative drive speed ripple ``A`` in
-        ``omega (1 + A sin(nL theta + ripple_phase))`` [-]; ripple_phase [rad].
+        ``omega (1 + A sin(h nL theta + ripple_phase))`` [-]; ripple_phase [rad];
+        ripple_harmonic: ``h``, ripples per leg cycle (integer >= 1).
     """
 
     slip: float = 0.25
@@ -61,6 +62,7 @@ class StickSlipParams:
     viscous: float = 0.0
     ripple_amp: float = 0.0
     ripple_phase: float = 0.0
+    ripple_harmonic: int = 1
 
     def __post_init__(self):
         problems = []
@@ -80,6 +82,8 @@ class StickSlipParams:
             problems.append("b_hc, stribeck_vs and viscous must be >= 0")
         if not 0.0 <= self.ripple_amp < 1.0:
             problems.append(f"ripple_amp={self.ripple_amp} must be in [0, 1)")
+        if int(self.ripple_harmonic) != self.ripple_harmonic or self.ripple_harmonic < 1:
+            problems.append(f"ripple_harmonic={self.ripple_harmonic} must be an integer >= 1")
         if not problems and self.MH * self.g / self.kS >= self.lS:
             problems.append(
                 f"the hub's static sinkage MH g / kS = {self.MH * self.g / self.kS:.4f} m is not below lS = {self.lS} m"
@@ -136,6 +140,7 @@ class StickSlipParams:
         row[K.P_VISC] = self.viscous
         row[K.P_RIPPLE_A] = self.ripple_amp
         row[K.P_RIPPLE_PH] = self.ripple_phase
+        row[K.P_RIPPLE_H] = self.ripple_harmonic
         return row
 
 

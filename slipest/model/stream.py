@@ -64,7 +64,7 @@ class CycleTimeline:
     """Leg phase as a function of time within one cycle, for a given drive law.
 
     With a constant leg speed the phase is linear in time; with a drive
-    speed ripple ``omega(phi) = omega0 (1 + A sin(nL phi + ph))`` the time to
+    speed ripple ``omega(phi) = omega0 (1 + A sin(h nL phi + ph))`` the time to
     reach each phase is tabulated once (the ripple repeats every cycle).
     """
 
@@ -73,6 +73,7 @@ class CycleTimeline:
         self.omega0 = params.omega
         self.amp = params.ripple_amp
         self.phase0 = params.ripple_phase
+        self.k = self.n_legs * params.ripple_harmonic  # ripples per radian of leg angle
         half = math.pi / self.n_legs
         if self.amp == 0.0:
             self.period = 2 * half / self.omega0
@@ -86,11 +87,11 @@ class CycleTimeline:
 
     def omega(self, phi):
         """Leg angular speed [rad/s] at phase ``phi`` [rad]."""
-        return self.omega0 * (1.0 + self.amp * np.sin(self.n_legs * phi + self.phase0))
+        return self.omega0 * (1.0 + self.amp * np.sin(self.k * phi + self.phase0))
 
     def domega_dphi(self, phi):
         """Derivative of the leg speed with respect to the phase [1/s]."""
-        return self.omega0 * self.amp * self.n_legs * np.cos(self.n_legs * phi + self.phase0)
+        return self.omega0 * self.amp * self.k * np.cos(self.k * phi + self.phase0)
 
     def phase(self, tau):
         """Phase [rad] at time ``tau`` [s] since the cycle's start (phase ``-pi/nL``)."""
@@ -116,7 +117,7 @@ class _Schedule:
         cache: dict = {}
         self.timelines = []
         for c in cycles:
-            key = (c.nL, c.omega, c.ripple_amp, c.ripple_phase)
+            key = (c.nL, c.omega, c.ripple_amp, c.ripple_phase, c.ripple_harmonic)
             if key not in cache:
                 cache[key] = CycleTimeline(c)
             self.timelines.append(cache[key])

@@ -47,6 +47,7 @@ from slipest.model.effects.imu_lowpass import ImuLowpassEffect, LowPass
 from slipest.model.effects.imu_saturation import ImuSaturationEffect, Saturation
 from slipest.model.effects.speed_ripple import SpeedRippleEffect
 from slipest.model.effects.stribeck import StribeckEffect
+from slipest.model.effects.time_skew import TimeSkew, TimeSkewEffect
 from slipest.model.effects.touchdown_impact import TouchdownImpact, TouchdownImpactEffect, impact_response
 from slipest.model.params import StickSlipParams
 
@@ -60,6 +61,7 @@ CATALOG: tuple[Effect, ...] = (
     ImuLowpassEffect(),
     ImuSaturationEffect(),
     AngleOffsetEffect(),
+    TimeSkewEffect(),
 )
 #: Name -> effect.
 EFFECTS: dict[str, Effect] = {e.name: e for e in CATALOG}
@@ -70,7 +72,8 @@ assert len(EFFECTS) == len(CATALOG), "effect names must be unique"
 
 __all__ = [
     "CATALOG", "EFFECTS", "ORDER", "Effect", "FitParam", "ParamSpec", "AngleOffset", "LowPass", "Saturation",
-    "TouchdownImpact", "impact_response", "compile_effects", "normalise_spec", "parse_effect_arg", "catalog_text",
+    "TimeSkew", "TouchdownImpact", "impact_response", "compile_effects", "normalise_spec", "parse_effect_arg",
+    "catalog_text",
 ]
 
 

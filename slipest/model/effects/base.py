@@ -131,24 +131,33 @@ class PredictionContext(Protocol):
     grid: the phase grid (:class:`slipest.diagnosis.predict.Grid`); bias0
     [m/s^2]: accelerometer bias assumed before sampled stages; noise_sigma
     [m/s^2]: white noise of one logged sample; solve_linear: solve the
-    effect's ``linear`` fit parameters in closed form.
+    effect's ``linear`` fit parameters in closed form; g_touchdowns: see
+    :attr:`Effect.history_s`.
     """
 
     grid: object
     bias0: float
     noise_sigma: float
     solve_linear: bool
+    #: ``(G,)`` cycle boundaries since the log's start up to each group's cycle (inf: a long history).
+    g_touchdowns: np.ndarray
 
-    def speed_groups(self):
-        """``(omega [rad/s], mask (G,))`` per distinct mean leg speed of the predicted groups."""
+    def speed_groups(self, previous: bool = False):
+        """``(omega [rad/s], mask (G,))`` per distinct leg speed of the predicted groups; ``previous``:
+        ``(omega, prev_omega, mask)`` per distinct pair with the previous cycles' speed."""
         ...
 
     def bin_average(self, x: np.ndarray, offset=None) -> np.ndarray:
-        """``(P, G, n_ext)`` extended-grid signal -> ``(P, G, nb)`` analysis bins (encoder offset ``(P,)`` [rad])."""
+        """``(P, G, n_ext)`` extended-grid signal -> ``(P, G, nb)`` analysis bins (encoder offset [rad]: ``(P,)``,
+        or ``(P, nb + 1)`` per bin edge)."""
         ...
 
     def solve_amplitude(self, param: "FitParam", m0: np.ndarray, h: np.ndarray) -> np.ndarray:
         """Least-squares amplitude ``(P,)`` of ``m0 + A h`` (bins) with the bias, clipped to ``param``'s range."""
+        ...
+
+    def solve_amplitudes(self, params, m0: np.ndarray, hs) -> list[np.ndarray]:
+        """Least-squares amplitudes ``(P,)`` each of ``m0 + sum_k A_k h_k`` with the bias, clipped to ``params[k]``'s range."""
         ...
 
 
@@ -164,6 +173,10 @@ class Effect:
         nonlinear sampled stage acting after it: clipping).
     search_steps: integration steps ``(coarse, search)`` [s] the fit needs
         instead of its defaults, or None.
+    history_s: how far back [s] the prediction of a cycle depends on the
+        log's start (transients that build up over many cycles), or None
+        (not at all): cycles closer to the start are predicted with their
+        count of touchdowns since it.
     """
 
     name: str = ""
@@ -175,6 +188,7 @@ class Effect:
     memory: bool = False
     bias_inside: bool = False
     search_steps: tuple[float, float] | None = None
+    history_s: float | None = None
 
     def __repr__(self) -> str:
         return f"<effect {self.name}>"
@@ -231,6 +245,14 @@ class Effect:
         hardware (``MH`` [kg], ``g`` [m/s^2], ...). Default: the same names.
         """
         return {p.name: fitted[p.name] for p in self.params}
+
+    def equivalent_on(self, omega) -> str | None:
+        """The catalog effect this one cannot be told from on cycles of leg speeds ``omega`` [rad/s] (default None).
+
+        The diagnosis then fits only that one (e.g. a time skew is an angle
+        offset while the leg speed does not change).
+        """
+        return None
 
     def signature_seeds(self, data) -> list[dict]:
         """Fitted parameters read off the data directly, to seed the fit (partial value dicts; default none).
