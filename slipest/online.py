@@ -215,7 +215,9 @@ class SlipEstimator:
     (:class:`~slipest.estimator.SoilSlipEstimator`: ``hazard``,
     ``soil_temper``, ...; :class:`~slipest.inverse.eq515.Eq515Tracker`:
     ``dphi0``, ``dphi0_std``, ``q``). model / calibration: the inverse
-    model and calibration dicts to use instead of the shipped files.
+    model and calibration dicts to use instead of the shipped files; a
+    rover model (:func:`slipest.rover.load_rover`) as ``model`` also gives
+    ``method="eq515"`` its refitted calibration.
     noise: the IMU noise's standard deviation [g] when known (None: estimated
     from the data, see below).
 
@@ -280,8 +282,9 @@ class SlipEstimator:
         if self.method == "eq515":
             from slipest.inverse.eq515 import Eq515Tracker
 
-            self.filter = Eq515Tracker.from_calibration(self.soil, self.use_reference, self._calibration,
-                                                        **self._est_opts)
+            # a rover model (slipest.rover) carries its own refitted Eq. 5.15 calibration
+            calibration = self._calibration if self._calibration is not None else getattr(self._model, "eq515", None)
+            self.filter = Eq515Tracker.from_calibration(self.soil, self.use_reference, calibration, **self._est_opts)
             what = "the Eq. 5.15 calibration"
         else:
             from slipest.estimator import SoilSlipEstimator
