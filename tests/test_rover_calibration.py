@@ -231,3 +231,26 @@ def test_a_named_effect_gives_a_physics_correction_that_transfers_to_other_soils
     _build_candidate(base, cand, logs, CalibrateOptions(batch=150, blind_start=3), 4, np.random.default_rng(0))
     shipped = [blind_score(base, lg, 3, 4)["slip_rmse"] for lg in logs]
     assert cand.slip_rmse < 0.7 * float(np.sqrt(np.mean(np.square(shipped)))), (cand.scores, shipped)
+
+
+def test_the_demo_estimates_a_rover_with_an_effect_both_ways_side_by_side(tmp_path):
+    """``slipest demo --effect ... --rover ...``: the device's scenario carries the effect, and each cycle is
+    estimated by the rover's model and by the shipped one from the same samples."""
+    import tomllib
+
+    from slipest.cli.demo import DEMO_SCENARIO, _SideBySide, scenario_toml
+    from slipest.online import SlipEstimator
+
+    doc = {**DEMO_SCENARIO, "effect": [EFFECT]}
+    sc = Scenario.from_dict(tomllib.loads(scenario_toml(doc)))
+    assert sc.effects == (EFFECT,)
+    _, path = _rover(tmp_path)
+    pair = _SideBySide(SlipEstimator(n_legs=4, model=load_rover(path)), SlipEstimator(n_legs=4))
+    s = simulate_stream(replace(sc, cycles=sc.cycles[:4], noise_g=0.01, seed=3))
+    out = pair.push_many(s.t[:40000], s.az[:40000], s.theta[:40000])
+    out += [e for i in range(40000, len(s.t)) for e in pair.push(s.t[i], s.az[i], s.theta[i])]
+    out += pair.finish()
+    assert [e.cycle for e in out] == sorted(pair.shipped) and len(out) >= 3
+    both = [(e, pair.shipped[e.cycle]) for e in out if e.ok]
+    assert both and all(a.slip != b.slip for a, b in both)  # two models, two estimates of each cycle
+    assert pair.counters["cycles"] == len(out)

@@ -48,8 +48,8 @@ def add_parser(sub) -> None:
     p.add_argument("--no-diagnosis", action="store_true",
                    help="skip the diagnosis: only the correction learnt from the logs themselves")
     p.add_argument("--thorough", action="store_true", help="the diagnosis's full optimiser budget (about twice as long)")
-    p.add_argument("--batch", type=int, default=600, metavar="N",
-                   help="simulated leg cycles per candidate effect (default 600)")
+    p.add_argument("--batch", type=int, default=None, metavar="N",
+                   help="simulated leg cycles per candidate effect (default 1500)")
     p.add_argument("--seed", type=int, default=0, help="seed of the optimiser and the simulated batches (default 0)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.set_defaults(func=run)
@@ -93,10 +93,10 @@ def run(args: argparse.Namespace) -> int:
     from slipest.rover.report import report_lines
 
     effects = tuple(e.strip() for e in args.effects.split(",") if e.strip()) if args.effects else None
-    if args.batch < 50:
+    if args.batch is not None and args.batch < 50:
         _fail(f"--batch {args.batch}: at least 50 simulated cycles are needed to fit a discrepancy")
     options = CalibrateOptions(diagnose=not args.no_diagnosis, quick=not args.thorough, effects=effects,
-                               batch=args.batch, seed=args.seed)
+                               batch=args.batch or CalibrateOptions.batch, seed=args.seed)
     closer, progress = _progress_bar(args)
     try:
         cal = calibrate_logs(args.logs, options, legs=args.legs, MH=args.MH, mF=args.mF, lS=args.lS,

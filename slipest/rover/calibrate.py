@@ -98,8 +98,8 @@ class CalibrateOptions:
     diagnose: bool = True
     quick: bool = True
     effects: tuple | None = None
-    batch: int = 600
-    degree: int = 3
+    batch: int = 1500
+    degree: int = 4
     testbed_degree: int = 2
     seed: int = 0
     blind_start: int = 9
@@ -355,8 +355,8 @@ def calibrate(runs, geometry: Geometry = Geometry(), options: CalibrateOptions =
     for k, cand in enumerate(cands):
         _stage(progress, k, len(cands), f"simulating {cand.label} ({options.batch} cycles)")
         _build_candidate(base, cand, logs, options, n_legs, rng)
-    _stage(progress, len(cands), len(cands), "candidates")
     chosen = _choose(cands, _mean_rmse(before_scores))
+    _stage(progress, len(cands), len(cands), "candidates")
     model = shipped if chosen is None else chosen.model
     _stage(progress, 0, 1, "testbed correction (leave one run out)")
     layer = _testbed_layer(model, logs, options, n_legs)

@@ -58,7 +58,7 @@ def report_lines(report: dict) -> list[str]:
         tried = ", ".join(f"{c['label']} ({_blind(c['blind'])})" for c in report["candidates"]) or "none"
         out.append(f"correction: no catalog effect used (tried: {tried})")
     else:
-        what = "; ".join(f"{e['name']} ({_params(e)})" for e in eff["effects"]) or "the nominal model"
+        what = "; ".join(f"{e['name']} ({_params(e)})" for e in eff["effects"]) or eff["label"]
         out.append(f"correction: the simulator with {what}, kappa {eff['kappa']:.2f} ({eff['origin']}), as a "
                    "feature discrepancy over slip and soil")
     tb = corr["testbed"]
