@@ -134,7 +134,7 @@ class Boxcar:
 def draw_variant(name, rng):
     u = rng.uniform
     if name == "impact_rising":
-        p = {"amplitude": float(u(8, 20) * rng.choice([-1, 1])), "tau": float(u(0.05, 0.3)), "freq": float(u(6, 15))}
+        p = {"amplitude": float(u(2, 12) * rng.choice([-1, 1])), "tau": float(u(0.3, 0.6)), "freq": float(u(6, 15))}
         return p, [RisingImpact(**p)]
     if name == "imu_boxcar":
         p = {"window": float(u(0.04, 0.12))}
