@@ -18,7 +18,12 @@ its own unknown soil, and the rover's known hardware
    covariance; uses the effect the diagnosis named unless the blind
    estimates of the testbed runs (soil unknown, reference ignored, as on a
    drive) get worse by more than :data:`MAX_LOSS`, else an effect it did not
-   name if those beat the shipped model's by :data:`MIN_GAIN` (:func:`_choose`);
+   name if those beat the shipped model's by :data:`MIN_GAIN` (:func:`_choose`).
+   When no named effect explains a log well (shrink below
+   :data:`WELL_EXPLAINED`), a phase-locked ``az`` disturbance learnt from the
+   logs' waveforms (:mod:`slipest.rover.waveform`) is a candidate too, as if
+   named when it shrinks their held-out gaps by :data:`DISTURBANCE_SHRINK`:
+   the rover model then removes it from the samples;
 4. on top, a correction in slip alone learnt from the testbed cycles with
    each run's soil estimated jointly (:func:`~slipest.rover.fit.fit_testbed_discrepancy`),
    kept only when it improves the blind estimates of runs it was not fitted
@@ -39,7 +44,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
@@ -54,6 +59,7 @@ from slipest.rover.fit import (
     log_residuals,
     log_soil,
     whitened_sq,
+    with_discrepancy,
 )
 from slipest.rover.physics import effect_batch, fit_effect_discrepancy
 from slipest.rover.surrogate import RoverSurrogate
@@ -73,6 +79,10 @@ KAPPA_TOLERANCE = 0.04
 MODEL_KAPPA = 0.3
 #: An effect the diagnosis ranks first without naming it is still tried when it shrinks the gap this much.
 PARTIAL_SHRINK = 0.3
+#: A disturbance learnt from the waveforms is learnt when no named effect shrank a log's gap this much ...
+WELL_EXPLAINED = 0.9
+#: ... and counts as named (as an effect the diagnosis names) when it shrinks the logs' held-out gaps this much.
+DISTURBANCE_SHRINK = 0.5
 
 
 @dataclass(frozen=True)
@@ -115,7 +125,9 @@ class Candidate:
     origin: str
     named: bool = False
     shrink: float = 0.0
+    disturbance: dict | None = None
     model: object = None
+    logs: list | None = None
     scores: list = field(default_factory=list)
     seconds: float = 0.0
 
@@ -212,6 +224,35 @@ def _effect_candidates(diagnoses, runs) -> list[Candidate]:
     return out
 
 
+def _disturbance_candidate(diagnoses, geometry: Geometry, options: CalibrateOptions, progress: Progress | None,
+                           runs, base, n_legs: int) -> Candidate | None:
+    """A phase-locked ``az`` disturbance learnt from each diagnosed log's training cycles (their mean,
+    :func:`slipest.rover.waveform.learn_disturbance`), removed from the samples, with the testbed logs'
+    features recomputed through the correction (``cand.logs``): no candidate when it shrinks the logs'
+    held-out gaps by less than :data:`PARTIAL_SHRINK` on average, a named one (as an effect the diagnosis
+    names) from :data:`DISTURBANCE_SHRINK`."""
+    from slipest.rover.waveform import learn_disturbance
+
+    done = [d for d in diagnoses if d is not None]
+    if not done:
+        return None
+    learnt = []
+    for k, d in enumerate(done):
+        _stage(progress, k, len(done), "learning the waveform disturbance")
+        learnt.append(learn_disturbance(d, geometry, seed=options.seed))
+    shrink = float(np.mean([x.shrink for x in learnt]))
+    if shrink < PARTIAL_SHRINK:
+        return None  # it does not explain the held-out cycles: not a disturbance locked to the phase
+    wave = np.mean([x.values for x in learnt], axis=0)
+    rms = float(np.sqrt(np.mean(wave**2))) / 9.81 * 1000
+    cand = Candidate("learnt disturbance", (), float(np.median([x.kappa for x in learnt])),
+                     f"the logs' mean residual waveform (RMS {rms:.0f} mg), held-out gap shrink {shrink:.0%}",
+                     named=shrink >= DISTURBANCE_SHRINK, shrink=shrink)
+    cand.disturbance = {"phase": learnt[0].phases.tolist(), "az": wave.tolist(),
+                        "heldout_gap_g": [[x.gap_nominal, x.gap_after] for x in learnt]}
+    return cand
+
+
 def _choose(cands, shipped_rmse: float):
     """The candidate to use, or None: the effect the diagnosis named (the one whose fit shrank the gap most),
     unless its blind estimates of the testbed logs are worse than the shipped model's by more than
@@ -225,9 +266,20 @@ def _choose(cands, shipped_rmse: float):
     return min(others, key=lambda c: c.slip_rmse) if others else None
 
 
-def _build_candidate(base, cand: Candidate, logs, options: CalibrateOptions, n_legs: int, rng) -> None:
-    """Simulate the candidate's batch, fit its discrepancy and extra covariance, score it blind (in place)."""
+def _build_candidate(base, cand: Candidate, logs, options: CalibrateOptions, n_legs: int, rng, runs=()) -> None:
+    """The candidate's model and blind scores (in place): a learnt disturbance's model removes it from the
+    samples (the testbed logs' features recomputed through it: ``cand.logs``); an effect's simulates its
+    batch and fits the discrepancy and extra covariance."""
     t0 = time.perf_counter()
+    if cand.disturbance is not None:
+        zero = Discrepancy.zero(base.features, base.center[:4], base.halfwidth[:4])
+        cand.model = RoverSurrogate.of(base, zero, np.zeros((len(base.features),) * 2), rover_legs=n_legs,
+                                       disturbance={k: cand.disturbance[k] for k in ("phase", "az")})
+        cand.logs = [TestbedLog.from_samples(r.name, r.t, r.az, r.theta, r.slip, n_legs, model=cand.model)
+                     for r in runs]
+        cand.scores = [blind_score(cand.model, lg, options.blind_start, n_legs) for lg in cand.logs]
+        cand.seconds = time.perf_counter() - t0
+        return
     omega = float(np.median([lg.omega for lg in logs]))
     noise = float(np.median([lg.noise for lg in logs]))
     rate = float(np.median([lg.rate for lg in logs]))
@@ -270,10 +322,6 @@ def _feature_misfit(model, logs, held) -> float:
     return float(np.mean(sq) / len(model.features)) if sq.size else math.nan
 
 
-def _with_testbed(model: RoverSurrogate, extra: Discrepancy) -> RoverSurrogate:
-    return RoverSurrogate.of(model.base, model.discrepancy.plus(extra), model.extra_cov, rover_legs=model.rover_legs)
-
-
 def _testbed_layer(model: RoverSurrogate, logs, options: CalibrateOptions, n_legs: int) -> dict:
     """The correction in slip alone: its held-out test (leave one run out, or held-out levels with one run)
     and, when it helps, the fit on every run. Returns ``{"used", "heldout_without", "heldout_with",
@@ -284,13 +332,13 @@ def _testbed_layer(model: RoverSurrogate, logs, options: CalibrateOptions, n_leg
             others = [o for k, o in enumerate(logs) if k != j]
             extra, _ = fit_testbed_discrepancy(model, others, options.testbed_degree)
             base_scores.append(blind_score(model, lg, options.blind_start, n_legs))
-            with_scores.append(blind_score(_with_testbed(model, extra), lg, options.blind_start, n_legs))
+            with_scores.append(blind_score(with_discrepancy(model, extra), lg, options.blind_start, n_legs))
         how = "leave one run out"
     else:
         held, train = _heldout_split(logs)
         extra, _ = fit_testbed_discrepancy(model, train, options.testbed_degree)
         base_scores = [_masked_blind(model, logs[0], held[0], n_legs)]
-        with_scores = [_masked_blind(_with_testbed(model, extra), logs[0], held[0], n_legs)]
+        with_scores = [_masked_blind(with_discrepancy(model, extra), logs[0], held[0], n_legs)]
         how = "held-out slip levels"
     before, after = _mean_rmse(base_scores), _mean_rmse(with_scores)
     used = bool(after < (1.0 - 0.5 * MIN_GAIN) * before)
@@ -355,13 +403,20 @@ def calibrate(runs, geometry: Geometry = Geometry(), options: CalibrateOptions =
     for k, cand in enumerate(cands):
         _stage(progress, k, len(cands), f"simulating {cand.label} ({options.batch} cycles)")
         _build_candidate(base, cand, logs, options, n_legs, rng)
+    if options.diagnose and not any(c.named and c.shrink >= WELL_EXPLAINED for c in cands):
+        extra = _disturbance_candidate(diagnoses, geometry, options, progress, runs, base, n_legs)
+        if extra is not None:
+            _build_candidate(base, extra, logs, options, n_legs, rng, runs)
+            cands.append(extra)
     chosen = _choose(cands, _mean_rmse(before_scores))
     _stage(progress, len(cands), len(cands), "candidates")
     model = shipped if chosen is None else chosen.model
+    if chosen is not None and chosen.logs is not None:
+        logs = chosen.logs  # the features the rover model sees: through its sample correction
     _stage(progress, 0, 1, "testbed correction (leave one run out)")
     layer = _testbed_layer(model, logs, options, n_legs)
     if layer["used"]:
-        model = _with_testbed(model, layer["discrepancy"])
+        model = with_discrepancy(model, layer["discrepancy"])
     soils = [log_soil(model, lg) for lg in logs]
     # held-out scatter beyond the model's covariance: soils from the training levels, residuals of the rest
     factor = max(1.0, _feature_misfit(model, logs, held))
@@ -369,13 +424,12 @@ def calibrate(runs, geometry: Geometry = Geometry(), options: CalibrateOptions =
     omega = float(np.median([lg.omega for lg in logs]))
     if factor > 1.0:
         r = model.cov(omega, noise_smooth)
-        model = RoverSurrogate.of(model.base, model.discrepancy, model.extra_cov + (factor - 1.0) * r,
-                                  rover_legs=n_legs)
+        model = replace(model, extra_cov=model.extra_cov + (factor - 1.0) * r)
     misfit_after = _feature_misfit(model, logs, held)
     after_scores = [blind_score(model, lg, options.blind_start, n_legs) for lg in logs]
     _stage(progress, 1, 1, "done")
     eq515 = refit_eq515(logs, soils, omega, n_legs)
-    model = RoverSurrogate.of(model.base, model.discrepancy, model.extra_cov, rover_legs=n_legs, eq515=eq515)
+    model = replace(model, eq515=eq515)
     report = {
         "runs": [{"name": lg.name, "cycles": lg.n_cycles, "estimated_with_reference": len(lg),
                   "slip_levels": len(lg.levels()), "omega": lg.omega, "noise_g": lg.noise, "rate_hz": lg.rate,
@@ -389,7 +443,8 @@ def calibrate(runs, geometry: Geometry = Geometry(), options: CalibrateOptions =
                         "origin": c.origin, "blind": _figures(c.scores), "seconds": c.seconds} for c in cands],
         "correction": {
             "effect": None if chosen is None else {"label": chosen.label, "effects": [dict(e) for e in chosen.effects],
-                                                   "kappa": chosen.kappa, "origin": chosen.origin},
+                                                   "kappa": chosen.kappa, "origin": chosen.origin,
+                                                   "disturbance": chosen.disturbance},
             "testbed": {k: layer[k] for k in ("used", "how", "heldout_without", "heldout_with")},
             "covariance_factor": factor,
         },

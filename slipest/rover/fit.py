@@ -24,7 +24,7 @@ Units: slip [-], kS [N/m], phiS, dphi [rad]; features in their units.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -105,7 +105,7 @@ def fit_testbed_discrepancy(model, logs, degree: int = 2, ridge: float = 1e-2, i
     d = Discrepancy.zero(feats, model.center[:4], model.halfwidth[:4])
     soils: list = []
     for it in range(iterations):
-        corrected = model if it == 0 else _with(model, d)
+        corrected = model if it == 0 else with_discrepancy(model, d)
         soils = [log_soil(corrected, lg, grid) for lg in logs]
         x4 = np.vstack([log_points(lg, s)[:, :4] for lg, s in zip(logs, soils)])
         resid = np.vstack([log_residuals(model, lg, s) for lg, s in zip(logs, soils)])
@@ -113,13 +113,12 @@ def fit_testbed_discrepancy(model, logs, degree: int = 2, ridge: float = 1e-2, i
     return d, soils
 
 
-def _with(model, extra: Discrepancy):
+def with_discrepancy(model, extra: Discrepancy):
     """``model`` with ``extra`` added to its discrepancy (a rover model from the shipped surrogate)."""
     from slipest.rover.surrogate import RoverSurrogate
 
     if isinstance(model, RoverSurrogate):
-        return RoverSurrogate.of(model.base, model.discrepancy.plus(extra), model.extra_cov,
-                                 rover_legs=model.rover_legs, eq515=model.eq515, source=model.source)
+        return replace(model, discrepancy=model.discrepancy.plus(extra))
     return RoverSurrogate.of(model, extra, np.zeros((len(model.features),) * 2), rover_legs=model.n_legs)
 
 
@@ -147,4 +146,4 @@ def blind_score(model, log: TestbedLog, start: int = 9, n_legs: int | None = Non
 
 
 __all__ = ["LogSoil", "SLIP_ROUND", "blind_score", "fit_testbed_discrepancy", "inflation", "log_points",
-           "log_residuals", "log_soil", "whitened_sq"]
+           "log_residuals", "log_soil", "whitened_sq", "with_discrepancy"]

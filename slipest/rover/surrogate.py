@@ -10,7 +10,11 @@ carries what the discrepancy does not explain::
 
 ``D`` and ``Q`` do not depend on the leg speed or the IMU noise: they are
 learnt at the testbed's speed and noise (the rover file says which) and
-applied as they are elsewhere. ``eq515``: the Eq. 5.15 calibration refitted
+applied as they are elsewhere. ``disturbance``: an ``az`` disturbance
+locked to the leg phase that the calibration learnt from the testbed's
+waveforms (``{"phase": [rad], "az": [m/s^2]}``, :mod:`slipest.rover.waveform`),
+or None; :attr:`sample_correction` removes it from a cycle's samples before
+their features are computed (:class:`slipest.online.SlipEstimator` applies it). ``eq515``: the Eq. 5.15 calibration refitted
 on the same testbed logs (a calibration dict as
 :meth:`slipest.inverse.eq515.Eq515Tracker.from_calibration` reads it), or
 None. ``source``: where the rover model came from (its file), for messages.
@@ -60,6 +64,7 @@ class RoverSurrogate(FeatureSurrogate):
     rover_legs: int = 4
     eq515: dict | None = None
     source: str = "rover model"
+    disturbance: dict | None = None
 
     def __post_init__(self):
         super().__post_init__()
@@ -71,12 +76,32 @@ class RoverSurrogate(FeatureSurrogate):
             raise ValueError(f"{self.source}: extra_cov must be a symmetric finite ({d}, {d}) matrix")
         if np.linalg.eigvalsh(0.5 * (q + q.T)).min() < -1e-9 * max(1.0, abs(q).max()):
             raise ValueError(f"{self.source}: extra_cov must be positive semi-definite")
+        if self.disturbance is not None:
+            ph = np.asarray(self.disturbance.get("phase", ()), dtype=float)
+            az = np.asarray(self.disturbance.get("az", ()), dtype=float)
+            if ph.ndim != 1 or ph.shape != az.shape or ph.size < 4 or not (np.all(np.isfinite(ph))
+                                                                           and np.all(np.isfinite(az))):
+                raise ValueError(f"{self.source}: the disturbance must be equal lists of at least 4 finite phases "
+                                 "and accelerations")
 
     @classmethod
     def of(cls, base: FeatureSurrogate, discrepancy: Discrepancy, extra_cov, **rover) -> "RoverSurrogate":
         """The rover model on ``base`` (the shipped surrogate, or a model of the same kind)."""
         own = {f.name: getattr(base, f.name) for f in fields(FeatureSurrogate)}
         return cls(**own, discrepancy=discrepancy, extra_cov=np.asarray(extra_cov, dtype=float), **rover)
+
+    @property
+    def sample_correction(self):
+        """``correct(theta_phase [rad], az [m/s^2]) -> az`` removing the learnt disturbance from a cycle's
+        samples, or None when the rover has none."""
+        if self.disturbance is None:
+            return None
+        from functools import partial
+
+        from slipest.rover.waveform import phase_correction
+
+        return partial(phase_correction, np.asarray(self.disturbance["phase"], dtype=float),
+                       np.asarray(self.disturbance["az"], dtype=float), self.n_legs)
 
     @property
     def base(self) -> FeatureSurrogate:

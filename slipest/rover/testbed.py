@@ -67,9 +67,10 @@ class TestbedLog:
     rate: float
 
     @classmethod
-    def from_samples(cls, name: str, t, az, theta, slip, n_legs: int = 4) -> "TestbedLog":
-        """The log's cycles with a reference slip (ValueError naming the log when fewer than 8 remain)."""
-        r = cycle_rows(t, az, theta, slip, n_legs)
+    def from_samples(cls, name: str, t, az, theta, slip, n_legs: int = 4, model=None) -> "TestbedLog":
+        """The log's cycles with a reference slip (ValueError naming the log when fewer than 8 remain);
+        ``model``: the estimator's (a rover model's sample correction applies)."""
+        r = cycle_rows(t, az, theta, slip, n_legs, model)
         keep = np.isfinite(r["slip_ref"])
         n_all = len(r["cycle"]) + sum(r["flagged"].values())
         dt = np.diff(np.asarray(t, dtype=float))
