@@ -28,8 +28,9 @@ its own unknown soil, and the rover's known hardware
    each run's soil estimated jointly (:func:`~slipest.rover.fit.fit_testbed_discrepancy`),
    kept only when it improves the blind estimates of runs it was not fitted
    on (leave one run out; with one run, held-out slip levels);
-5. widens the covariance by what the held-out cycles still scatter beyond
-   it (:func:`~slipest.rover.fit.inflation`);
+5. widens the covariance by what the held-out slip levels still scatter
+   beyond it (their mean squared whitened residual per feature, each log's
+   soil fitted on its other levels);
 6. refits Eq. 5.15 on the runs' ``Da`` and slips on the soils found
    (:mod:`slipest.rover.eq515`).
 
@@ -55,7 +56,6 @@ from slipest.rover.fit import (
     LogSoil,
     blind_score,
     fit_testbed_discrepancy,
-    inflation,
     log_residuals,
     log_soil,
     whitened_sq,

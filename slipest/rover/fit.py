@@ -12,8 +12,8 @@ Each testbed log is on its own unknown soil; its cycles' slips are known.
   every soil: two or three testbed soils cannot say how it changes with the
   soil), fitted jointly with the logs' soils (alternating: soils given the
   correction, the correction given the soils);
-* :func:`inflation`: by how much the covariance must grow so that the
-  cycles' squared whitened residuals average the number of features;
+* :func:`whitened_sq`: the cycles' squared whitened residuals (their mean
+  per feature says by how much the covariance must grow);
 * :func:`blind_score`: the estimator run over a log as on a drive (soil
   unknown, reference ignored): slip RMSE and 95 % interval coverage from
   the ``start``-th cycle, what the calibration is judged by.
@@ -122,13 +122,6 @@ def with_discrepancy(model, extra: Discrepancy):
     return RoverSurrogate.of(model, extra, np.zeros((len(model.features),) * 2), rover_legs=model.n_legs)
 
 
-def inflation(model, logs, soils) -> float:
-    """Mean squared whitened residual per feature of the logs' cycles on their soils (1: the covariance
-    accounts for the scatter; above 1: the factor it must grow by)."""
-    sq = np.concatenate([whitened_sq(model, lg, log_residuals(model, lg, s)) for lg, s in zip(logs, soils)])
-    return float(np.mean(sq) / len(model.features))
-
-
 def blind_score(model, log: TestbedLog, start: int = 9, n_legs: int | None = None) -> dict:
     """The estimator with ``model`` over the log's cycles in order, soil unknown and the reference ignored:
     ``slip_rmse`` [-], ``coverage`` (share within 1.96 std) and ``bias`` from the ``start``-th cycle, ``n``."""
@@ -145,5 +138,5 @@ def blind_score(model, log: TestbedLog, start: int = 9, n_legs: int | None = Non
             "bias": float(np.mean(err[ok])), "n": int(ok.sum())}
 
 
-__all__ = ["LogSoil", "SLIP_ROUND", "blind_score", "fit_testbed_discrepancy", "inflation", "log_points",
+__all__ = ["LogSoil", "SLIP_ROUND", "blind_score", "fit_testbed_discrepancy", "log_points",
            "log_residuals", "log_soil", "whitened_sq", "with_discrepancy"]

@@ -57,6 +57,9 @@ def report_lines(report: dict) -> list[str]:
     if eff is None:
         tried = ", ".join(f"{c['label']} ({_blind(c['blind'])})" for c in report["candidates"]) or "none"
         out.append(f"correction: no catalog effect used (tried: {tried})")
+    elif eff.get("disturbance"):
+        out.append("correction: a disturbance locked to the leg phase, removed from the samples before their "
+                   f"features are computed ({eff['origin']}; no catalog effect explained the logs as well)")
     else:
         what = "; ".join(f"{e['name']} ({_params(e)})" for e in eff["effects"]) or eff["label"]
         out.append(f"correction: the simulator with {what}, kappa {eff['kappa']:.2f} ({eff['origin']}), as a "
