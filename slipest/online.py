@@ -215,7 +215,10 @@ class SlipEstimator:
     (:class:`~slipest.estimator.SoilSlipEstimator`: ``hazard``,
     ``soil_temper``, ...; :class:`~slipest.inverse.eq515.Eq515Tracker`:
     ``dphi0``, ``dphi0_std``, ``q``). model / calibration: the inverse
-    model and calibration dicts to use instead of the shipped files.
+    model and calibration dicts to use instead of the shipped files; a
+    rover model (:func:`slipest.rover.load_rover`) as ``model`` also gives
+    ``method="eq515"`` its refitted calibration, and removes the
+    disturbance it learnt (if any) from every cycle's samples.
     noise: the IMU noise's standard deviation [g] when known (None: estimated
     from the data, see below).
 
@@ -258,6 +261,8 @@ class SlipEstimator:
         self._seg_opts = {"window": (-half, half), "complete_from": 0.0, "max_dtheta": half / 10.0, **(segmenter or {})}
         self._est_opts = dict(estimator or {})
         self._model = model
+        # a rover model (slipest.rover) may remove a learnt phase-locked disturbance from the samples
+        self._correct = getattr(model, "sample_correction", None)
         self._calibration = calibration
         if noise is not None and not (math.isfinite(noise) and noise >= 0):
             raise ValueError(f"noise={noise} g must be a finite number >= 0")
@@ -280,8 +285,9 @@ class SlipEstimator:
         if self.method == "eq515":
             from slipest.inverse.eq515 import Eq515Tracker
 
-            self.filter = Eq515Tracker.from_calibration(self.soil, self.use_reference, self._calibration,
-                                                        **self._est_opts)
+            # a rover model (slipest.rover) carries its own refitted Eq. 5.15 calibration
+            calibration = self._calibration if self._calibration is not None else getattr(self._model, "eq515", None)
+            self.filter = Eq515Tracker.from_calibration(self.soil, self.use_reference, calibration, **self._est_opts)
             what = "the Eq. 5.15 calibration"
         else:
             from slipest.estimator import SoilSlipEstimator
@@ -391,6 +397,8 @@ class SlipEstimator:
                                           f"{omega * math.pi / 180:.3g} if degrees): slipest wants radians")
             return self._flagged(cyc, "speed", ref)
         tt, az, ph, repaired = self._clean(cyc)
+        if self._correct is not None:
+            az = self._correct(ph, az)
         gravity = _rigid_mean(ph, az, half) / G
         if math.isfinite(gravity) and not GRAVITY_RANGE[0] <= gravity <= GRAVITY_RANGE[1]:
             self._hints.setdefault("units", _units_hint(gravity))

@@ -8,7 +8,7 @@ serial``'s PORT.  A rover's service file might read::
     port = "/dev/ttyUSB0"
     legs = 4
     wheel = [0, 1]                       # a repeatable option takes a list
-    model = "inverse_model.npz"         # paths are relative to this file's directory
+    rover = "rover.json"                 # slipest calibrate's file; paths are relative to this file's directory
     kS = 1000.0                          # the known soil (kS, phiS, phiD, dphi) [N/m, rad]
     record = "/var/lib/slipest/run.csv"
     log-level = "INFO"
@@ -36,7 +36,7 @@ import os
 import tomllib
 
 #: Options whose value is a path: taken relative to the configuration file's directory.
-PATH_OPTIONS = frozenset({"model", "record", "record_frames", "report"})
+PATH_OPTIONS = frozenset({"model", "rover", "record", "record_frames", "report"})
 #: Options a file may give as a table ``{KEY = VALUE}`` (the keywords of the CAN bus).
 TABLE_OPTIONS = frozenset({"bus_option"})
 #: Options a file does not set.

@@ -17,6 +17,14 @@ estimates from damaged cycles.  ``--view 8765`` also shows the run live in
 Foxglove (``pip install 'slipest[view]'``; docs/live-view.md): the
 estimates, ``az`` and the leg angle, and the truth on
 ``/slipest/demo/truth``.
+
+``--effect NAME:k=v,...`` has the device simulate a rover with a
+sim-to-real effect (``slipest simulate``'s catalog); ``--rover ROVER.json``
+(``slipest calibrate``'s file for that rover) then estimates every cycle
+twice, with the shipped model and with the rover's, side by side, and the
+summary compares them:
+
+    slipest demo --speed 10 --effect imu_lowpass:cutoff=4,order=2 --rover rover.json
 """
 
 from __future__ import annotations
@@ -61,6 +69,11 @@ def add_parser(sub) -> None:
     p.add_argument("--seed", type=int, default=7, help="seed of the IMU noise (default 7)")
     p.add_argument("--faults", action="store_true", help="inject faults (dropped frame, corruption, stuck sensor, "
                    "disconnection) and show they are counted and never estimated from")
+    p.add_argument("--effect", action="append", default=[], metavar="NAME:k=v,...",
+                   help="the device simulates a rover with this sim-to-real effect (repeatable), e.g. "
+                   "imu_lowpass:cutoff=4,order=2")
+    p.add_argument("--rover", metavar="ROVER.json",
+                   help="also estimate with this rover file (slipest calibrate), side by side with the shipped model")
     from slipest.cli.live_args import add_view_arguments
 
     add_view_arguments(p)
@@ -81,10 +94,44 @@ def scenario_toml(doc: dict) -> str:
         if doc.get(table):
             lines.append(f"[{table}]")
             lines += [f"{k} = {value(v)}" for k, v in doc[table].items()]
-    for seg in doc["segment"]:
-        lines.append("[[segment]]")
-        lines += [f"{k} = {value(v)}" for k, v in seg.items()]
+    for key in ("segment", "effect"):
+        for entry in doc.get(key, ()):
+            lines.append(f"[[{key}]]")
+            lines += [f"{k} = {value(v)}" for k, v in entry.items()]
     return "\n".join(lines) + "\n"
+
+
+class _SideBySide:
+    """Two estimators fed the same samples: the rover's (whose estimates go on, as the live runtime's) and the
+    shipped model's (kept by cycle in ``shipped``, for the display)."""
+
+    def __init__(self, calibrated, shipped):
+        self.cal, self.ref = calibrated, shipped
+        self.shipped: dict = {}
+
+    def _keep(self, estimates):
+        for e in estimates:
+            self.shipped[e.cycle] = e
+
+    def push(self, t, az, theta, slip_ref=None):
+        self._keep(self.ref.push(t, az, theta, slip_ref))
+        return self.cal.push(t, az, theta, slip_ref)
+
+    def push_many(self, t, az, theta, slip_ref=None):
+        self._keep(self.ref.push_many(t, az, theta, slip_ref))
+        return self.cal.push_many(t, az, theta, slip_ref)
+
+    def finish(self):
+        self._keep(self.ref.finish())
+        return self.cal.finish()
+
+    @property
+    def counters(self):
+        return self.cal.counters
+
+    @property
+    def hints(self):
+        return self.cal.hints
 
 
 class _Child:
@@ -130,15 +177,22 @@ class _Child:
 class _Display:
     """One line per leg cycle, the estimate beside the truth; keeps the results."""
 
-    def __init__(self, scenario, out):
+    def __init__(self, scenario, out, side_by_side: bool = False):
         self.cycles = scenario.cycles
         self.period = 2 * math.pi / (scenario.n_legs * scenario.omega)
         self.out = out
         self.rows: list[tuple] = []  # (cycle, estimate, truth slip, truth dphi)
+        self.shipped_rows: list[tuple] = []  # with a rover file: the shipped model's (cycle, estimate, truth slip)
+        self.side_by_side = side_by_side  # each wheel's estimator is a _SideBySide
+        self.live = None  # the LiveEstimation whose wheels' estimators those are
         self.flagged: dict[str, int] = {}
         self._stretch = -1
 
     def header(self):
+        if self.side_by_side:
+            print(f"{'cycle':>5} {'t [s]':>7}  {'slip: shipped model':>19} {'rover file':>14} {'true':>6}   "
+                  f"{'dphi [rad]: rover':>17} {'true':>6}  quality", file=self.out, flush=True)
+            return
         print(f"{'cycle':>5} {'t [s]':>7}  {'slip: estimate':>15} {'true':>6}   "
               f"{'dphi [rad]: estimate':>20} {'true':>6}  quality", file=self.out, flush=True)
 
@@ -159,6 +213,16 @@ class _Display:
             return
         dphi = truth.phiS - truth.phiD
         self.rows.append((k, est, truth.slip, dphi))
+        if self.side_by_side:
+            other = self.live.wheels[wheel].estimator.shipped.pop(k, None)
+            if other is not None and other.ok:
+                self.shipped_rows.append((k, other, truth.slip))
+                shipped = f"{other.slip:11.3f} ±{other.slip_std:5.3f}"
+            else:
+                shipped = f"{'not estimated':>18}"
+            print(f"{k:>5} {t:7.1f}  {shipped} {est.slip:7.3f} ±{est.slip_std:5.3f} {truth.slip:6.3f}   "
+                  f"{est.dphi:9.3f} ±{est.dphi_std:5.3f} {dphi:6.3f}  ok", file=self.out, flush=True)
+            return
         print(f"{k:>5} {t:7.1f}  {est.slip:7.3f} ±{est.slip_std:5.3f} {truth.slip:6.3f}   "
               f"{est.dphi:12.3f} ±{est.dphi_std:5.3f} {dphi:6.3f}  ok", file=self.out, flush=True)
 
@@ -177,8 +241,16 @@ def _summary(display: _Display, live, source_counters: dict, device_report: dict
         dphi_rmse = float(np.sqrt(np.mean((e[:, 3] - e[:, 5]) ** 2)))
         dphi_cov = float(np.mean(np.abs(e[:, 3] - e[:, 5]) <= 1.96 * e[:, 4]))
         res.update(slip_rmse=slip_rmse, slip_coverage=slip_cov, dphi_rmse=dphi_rmse, dphi_coverage=dphi_cov)
-        print(f"  slip: RMSE {slip_rmse:.3f}, 95% interval covers the truth in {100 * slip_cov:.0f}% of cycles",
+        who = "slip with the rover file" if display.side_by_side else "slip"
+        print(f"  {who}: RMSE {slip_rmse:.3f}, 95% interval covers the truth in {100 * slip_cov:.0f}% of cycles",
               file=out)
+        if display.shipped_rows:
+            s = np.array([(r[1].slip, r[1].slip_std, r[2]) for r in display.shipped_rows])
+            rmse0 = float(np.sqrt(np.mean((s[:, 0] - s[:, 2]) ** 2)))
+            cov0 = float(np.mean(np.abs(s[:, 0] - s[:, 2]) <= 1.96 * s[:, 1]))
+            res.update(shipped_slip_rmse=rmse0, shipped_slip_coverage=cov0)
+            print(f"  slip with the shipped model: RMSE {rmse0:.3f}, 95% interval covers the truth in "
+                  f"{100 * cov0:.0f}% of cycles ({len(s)} cycles)", file=out)
         print(f"  dphi: RMSE {dphi_rmse:.3f} rad, 95% interval covers the truth in {100 * dphi_cov:.0f}% of cycles",
               file=out)
     lost = sum(wc.get("frames_lost", 0) for k, wc in live.counters().items() if k.startswith("wheel"))
@@ -227,7 +299,19 @@ def run(args: argparse.Namespace) -> int:
     out = sys.stdout
     doc = {k: (dict(v) if isinstance(v, dict) else list(v)) for k, v in DEMO_SCENARIO.items()}
     doc["imu"]["seed"] = args.seed
-    scenario = Scenario.from_dict(doc)
+    rover = None
+    try:
+        if args.effect:
+            from slipest.model.effects import parse_effect_arg
+
+            doc["effect"] = [parse_effect_arg(text) for text in args.effect]
+        scenario = Scenario.from_dict(doc)
+        if args.rover:
+            from slipest.rover.file import load_rover
+
+            rover = load_rover(args.rover, n_legs=scenario.n_legs)
+    except ValueError as exc:  # an unknown effect or parameter, a rover file that cannot be used: named
+        raise SystemExit(f"slipest demo: {exc}") from None
     period = 2 * math.pi / (scenario.n_legs * scenario.omega)
     n_cycles = len(scenario.cycles) if args.cycles is None else max(1, min(args.cycles, len(scenario.cycles)))
     duration = n_cycles * period  # the last cycle driven is estimated at the end of the stream (finish)
@@ -239,16 +323,23 @@ def run(args: argparse.Namespace) -> int:
     old_term = signal.signal(signal.SIGTERM, _term)  # while starting up; run_live handles it while streaming
     children: list[_Child] = []
     source = live = result = None
-    display = _Display(scenario, out)
+    display = _Display(scenario, out, side_by_side=rover is not None)
     tmp = tempfile.TemporaryDirectory(prefix="slipest-demo-")
     device_report_path = os.path.join(tmp.name, "device.json")
     code = 0
 
     view = None
 
+    def side_by_side(wheel):
+        from slipest.online import SlipEstimator
+
+        return _SideBySide(SlipEstimator(n_legs=scenario.n_legs, model=rover), SlipEstimator(n_legs=scenario.n_legs))
+
     def estimation(on_estimate):
         nonlocal view
-        est = LiveEstimation(source, n_legs=scenario.n_legs, sim_speed=speed or None, on_estimate=on_estimate)
+        est = LiveEstimation(source, n_legs=scenario.n_legs, sim_speed=speed or None, on_estimate=on_estimate,
+                             estimator_factory=side_by_side if rover is not None else None)
+        display.live = est
         est.warmup()
         view = view_from_args("slipest demo", args, est)
         if view is not None:
@@ -265,6 +356,10 @@ def run(args: argparse.Namespace) -> int:
         faster = f", shown {speed:g}x faster" if speed not in (0, 1) else ""
         print(f"slipest demo: {n_cycles} leg cycles ({n_cycles * period:.0f} s of driving{faster}) over {link_name}",
               file=out, flush=True)
+        if args.effect:
+            print(f"slipest demo: the device simulates a rover with {', '.join(args.effect)}"
+                  + (f"; estimates with the shipped model and with {args.rover} side by side" if rover else ""),
+                  file=out, flush=True)
         dev_args = [sys.executable, "-m", "firmware_sim", args.bus, "--scenario", scen_path, "--speed", f"{speed:g}",
                     "--duration", f"{duration:.6f}", "--send-reference", "--report", device_report_path, "--quiet",
                     "--linger", "0.3"]

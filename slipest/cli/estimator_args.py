@@ -1,10 +1,11 @@
 """The estimator options that `slipest replay` and the live commands (`serial`, `can`) share.
 
-``--method``, ``--model`` and the known soil (``--kS``, ``--phiS``,
-``--phiD``, ``--dphi``): added to a parser by :func:`add_estimator_arguments`
-and read back by :func:`soil_from_args` (which also checks that ``--method
-eq515`` has what it needs, and says so in the options' own spelling) and
-:func:`model_from_args`.
+``--method``, ``--model``, ``--rover`` and the known soil (``--kS``,
+``--phiS``, ``--phiD``, ``--dphi``): added to a parser by
+:func:`add_estimator_arguments` and read back by :func:`soil_from_args`
+(which also checks that ``--method eq515`` has what it needs, and says so in
+the options' own spelling) and :func:`model_from_args` (the inverse model or
+the rover's calibrated one).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ EQ515_NEEDS = "needs --kS, and --dphi (or --phiS with --phiD) or --use-reference
 
 
 def add_estimator_arguments(p) -> None:
-    """Add ``--method``, ``--model`` and the soil options to a parser or an argument group."""
+    """Add ``--method``, ``--model``, ``--rover`` and the soil options to a parser or an argument group."""
     from slipest.online import METHODS
 
     p.add_argument("--method", choices=METHODS, default="default",
@@ -30,6 +31,9 @@ def add_estimator_arguments(p) -> None:
     p.add_argument("--model", metavar="FILE", default=None,
                    help="inverse model file (.npz) of the default method (default: the shipped one, made for 4 legs "
                    "and leg speeds 0.3-1.2 rad/s; tools/train_inverse.py makes one for another wheel-leg or range)")
+    p.add_argument("--rover", metavar="ROVER.json", default=None,
+                   help="the rover file slipest calibrate wrote from this rover's testbed logs: the model corrected "
+                   "for this rover (default method) and its refitted Eq. 5.15 (--method eq515)")
     p.add_argument("--kS", type=float, default=None, help="known soil stiffness [N/m]")
     p.add_argument("--phiS", type=float, default=None, help="known static friction angle [rad]")
     p.add_argument("--phiD", type=float, default=None, help="known dynamic friction angle [rad]")
@@ -52,15 +56,14 @@ def soil_from_args(args: argparse.Namespace) -> dict:
     return soil
 
 
-def model_from_args(args: argparse.Namespace):
-    """The inverse model ``--model`` names, or None for the shipped one.
+def model_from_args(args: argparse.Namespace, n_legs: int | None = None):
+    """The model ``--rover`` or ``--model`` names, or None for the shipped one; ``n_legs``: the legs it will
+    estimate (a rover file made for others is refused).
 
-    Raises :class:`~slipest.inverse.surrogate.InverseModelError` (a
-    ValueError naming the file) when it cannot be used.
+    Raises :class:`~slipest.inverse.surrogate.InverseModelError` or
+    :class:`~slipest.rover.file.RoverFileError` (ValueErrors naming the file)
+    when it cannot be used, and ValueError when both are given.
     """
-    path = getattr(args, "model", None)
-    if not path:
-        return None
-    from slipest.inverse.surrogate import load_inverse_model
+    from slipest.rover.file import model_from_files
 
-    return load_inverse_model(path)
+    return model_from_files(getattr(args, "model", None), getattr(args, "rover", None), n_legs)

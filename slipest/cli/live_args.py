@@ -152,7 +152,7 @@ def live_from_args(args, source, on_estimate) -> LiveEstimation:
     (SystemExit on a bad combination or an existing recording)."""
     try:
         live = LiveEstimation(source, n_legs=args.legs, method=args.method, soil=soil_from_args(args),
-                              use_reference=args.use_reference, model=model_from_args(args), wheels=args.wheel,
+                              use_reference=args.use_reference, model=model_from_args(args, args.legs), wheels=args.wheel,
                               stuck_samples=args.stuck_samples, stuck_time=args.stuck_time,
                               sim_speed=args.sim_speed, record=args.record,
                               record_frames=getattr(args, "record_frames", None) or (),

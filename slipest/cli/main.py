@@ -22,7 +22,7 @@ from slipest import __version__
 _COMMAND_PREFIX = re.compile(r"^slipest(?: [\w-]+)?: ")
 
 #: Subcommand modules, in the order ``slipest --help`` lists them.
-SUBCOMMANDS = ("demo", "simulate", "replay", "serial_cmd", "can_cmd", "can_server", "diagnose")
+SUBCOMMANDS = ("demo", "simulate", "replay", "serial_cmd", "can_cmd", "can_server", "diagnose", "calibrate")
 
 
 def _build() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParser]]:

@@ -113,6 +113,7 @@ def options_from_args(args):
     bag = BagTopics(imu=args.imu_topic, joint_states=args.joint_states_topic, joint=args.joint, slip=args.slip_topic,
                     bag_time=args.bag_time, max_joint_gap=args.max_joint_gap)
     return ReplayOptions(legs=args.legs, method=args.method, soil=soil_from_args(args) or None, model=args.model,
+                         rover=args.rover,
                          use_reference=args.use_reference, truth=args.truth, carry_reference=bool(args.plot),
                          skip_bad=args.skip_bad, log_format=args.log_format,
                          wheels=tuple(args.wheel) if args.wheel else None, stuck_samples=args.stuck_samples,

@@ -71,13 +71,33 @@ def node_terms(schedule: dict) -> np.ndarray:
     return np.array(out, dtype=np.int64)
 
 
-def _design(u: np.ndarray, terms: np.ndarray) -> np.ndarray:
-    """Design matrix ``(n, T)`` of the tensor terms at normalised points ``u`` ``(n, 5)``."""
-    b = np.polynomial.legendre.legvander(u, int(terms.max()))  # (n, 5, degree + 1)
+def legendre_design(u: np.ndarray, terms: np.ndarray) -> np.ndarray:
+    """Design matrix ``(n, T)`` of the tensor Legendre terms ``(T, V)`` at normalised points ``u`` ``(n, V)``."""
+    b = np.polynomial.legendre.legvander(u, int(terms.max()))  # (n, V, degree + 1)
     out = b[:, 0, terms[:, 0]].copy()
     for v in range(1, u.shape[1]):
         out *= b[:, v, terms[:, v]]
     return out
+
+
+
+def legendre_on_grid(terms4: np.ndarray, coef: np.ndarray, center4, halfwidth4, levels) -> np.ndarray:
+    """A tensor Legendre polynomial in (slip, kS, phiS, dphi) (terms ``(T, 4)``, coefficients ``(T, d)``,
+    normalisation ``u = (x - center4) / halfwidth4``) on the tensor grid of ``levels`` = (slip nodes, kS,
+    phiS, dphi levels): ``(nk, nphiS, ndphi, K, d)``, contracted one variable at a time (matrix products).
+    Repeated terms add up."""
+    deg = int(terms4.max())
+    p = deg + 1
+    dense = np.zeros((p, p, p, p, coef.shape[1]))
+    np.add.at(dense, tuple(np.asarray(terms4).T), coef)
+    levels = [np.asarray(v, dtype=float) for v in levels]
+    bases = [np.polynomial.legendre.legvander((lv - center4[j]) / halfwidth4[j], deg) for j, lv in enumerate(levels)]
+    # one variable at a time, each a matrix product: (slip a, kS b, phiS c, dphi e, f) -> (kS, phiS, dphi, slip, f)
+    x = np.tensordot(dense, bases[3], axes=([3], [1]))  # (a, b, c, f, dphi)
+    x = np.tensordot(x, bases[2], axes=([2], [1]))  # (a, b, f, dphi, phiS)
+    x = np.tensordot(x, bases[1], axes=([1], [1]))  # (a, f, dphi, phiS, kS)
+    x = np.tensordot(x, bases[0], axes=([0], [1]))  # (f, dphi, phiS, kS, slip)
+    return np.ascontiguousarray(x.transpose(3, 2, 1, 4, 0))
 
 
 def fit_node(x5, y, terms: np.ndarray, center, halfwidth, progress=None) -> tuple[np.ndarray, np.ndarray]:
@@ -96,13 +116,13 @@ def fit_node(x5, y, terms: np.ndarray, center, halfwidth, progress=None) -> tupl
     a = np.zeros((len(terms), len(terms)))
     b = np.zeros((len(terms), y.shape[1]))
     for i in range(0, u.shape[0], _CHUNK):
-        dm = _design(u[i : i + _CHUNK], terms)
+        dm = legendre_design(u[i : i + _CHUNK], terms)
         a += dm.T @ dm
         b += dm.T @ y[i : i + _CHUNK]
         if progress:
             progress(dm.shape[0])
     coef = np.linalg.solve(a + 1e-8 * np.trace(a) / len(terms) * np.eye(len(terms)), b)
-    resid = np.concatenate([y[i : i + _CHUNK] - _design(u[i : i + _CHUNK], terms) @ coef
+    resid = np.concatenate([y[i : i + _CHUNK] - legendre_design(u[i : i + _CHUNK], terms) @ coef
                             for i in range(0, u.shape[0], _CHUNK)])
     s2 = x5[:, 4] ** 2
     basis = np.column_stack([np.ones_like(s2), s2])
@@ -218,7 +238,7 @@ class FeatureSurrogate:
             rows = np.flatnonzero(flat[:, 4] == om)
             u = (flat[rows][:, [0, 1, 2, 3, 5]] - self.center) / self.halfwidth
             for i in range(0, rows.size, _CHUNK):
-                dm = _design(u[i : i + _CHUNK], self.terms)
+                dm = legendre_design(u[i : i + _CHUNK], self.terms)
                 out[rows[i : i + _CHUNK]] = sum(w * (dm @ self.coef[k]) for k, w in self.node_weights(om))
         return out.reshape(x.shape[:-1] + (self.coef.shape[2],))
 
@@ -235,22 +255,11 @@ class FeatureSurrogate:
     def mean_on_grid(self, slip_nodes, kS_levels, phiS_levels, dphi_levels, omega: float, noise_smooth: float) -> np.ndarray:
         """Mean features on a tensor grid at one leg speed [rad/s] and smoothed noise [g]:
         ``(nk, nphiS, ndphi, K, d)``, contracted one variable at a time (matrix products)."""
-        deg = int(self.terms[:, :4].max())
-        p = deg + 1
         us = (float(noise_smooth) - self.center[4]) / self.halfwidth[4]
         ps = np.polynomial.legendre.legvander(np.array([us]), int(self.terms[:, 4].max()))[0][self.terms[:, 4]]
         coef = sum(w * self.coef[k] for k, w in self.node_weights(omega)) * ps[:, None]
-        dense = np.zeros((p, p, p, p, coef.shape[1]))
-        np.add.at(dense, tuple(self.terms[:, :4].T), coef)
-        levels = [np.asarray(v, dtype=float) for v in (slip_nodes, kS_levels, phiS_levels, dphi_levels)]
-        bases = [np.polynomial.legendre.legvander((lv - self.center[j]) / self.halfwidth[j], deg)
-                 for j, lv in enumerate(levels)]
-        # one variable at a time, each a matrix product: (slip a, kS b, phiS c, dphi e, f) -> (kS, phiS, dphi, slip, f)
-        x = np.tensordot(dense, bases[3], axes=([3], [1]))  # (a, b, c, f, dphi)
-        x = np.tensordot(x, bases[2], axes=([2], [1]))  # (a, b, f, dphi, phiS)
-        x = np.tensordot(x, bases[1], axes=([1], [1]))  # (a, f, dphi, phiS, kS)
-        x = np.tensordot(x, bases[0], axes=([0], [1]))  # (f, dphi, phiS, kS, slip)
-        return np.ascontiguousarray(x.transpose(3, 2, 1, 4, 0))
+        return legendre_on_grid(self.terms[:, :4], coef, self.center[:4], self.halfwidth[:4],
+                                (slip_nodes, kS_levels, phiS_levels, dphi_levels))
 
     # ------------------------------------------------------------------ file
     def save(self, path) -> Path:
@@ -334,4 +343,5 @@ def save_inverse_model(model: FeatureSurrogate, path) -> Path:
 
 
 __all__ = ["FORMAT_VERSION", "VARIABLES", "MODEL_FEATURES", "InverseModelError", "node_terms", "fit_node",
+           "legendre_design", "legendre_on_grid",
            "FeatureSurrogate", "load_inverse_model", "save_inverse_model"]

@@ -57,8 +57,9 @@ TABLE_COLUMNS = ("log", "kind", "wheel", "samples", "cycles", "estimated", "flag
 @dataclass(frozen=True)
 class ReplayOptions:
     """How to replay.  ``legs``: legs of the wheel-leg (None: the log's ``nL``, else 4).  ``method``,
-    ``soil`` (``{name: value}`` SI), ``model`` (an inverse-model file; None: the shipped one) and
-    ``use_reference``: as :class:`~slipest.online.SlipEstimator`.  ``truth``: compare the slip with the
+    ``soil`` (``{name: value}`` SI), ``model`` (an inverse-model file; None: the shipped one), ``rover``
+    (a rover file of ``slipest calibrate``, instead of ``model``) and ``use_reference``: as
+    :class:`~slipest.online.SlipEstimator`.  ``truth``: compare the slip with the
     log's reference (needs one).  ``carry_reference``: put the reference on the estimates
     (``slip_ref``) without comparing.  ``skip_bad``: count and skip malformed CSV rows.  ``log_format``:
     ``"auto"`` or one of :data:`~slipest.offline.logs.KINDS`.  ``wheels``: CAN wheels to estimate (None:
@@ -70,6 +71,7 @@ class ReplayOptions:
     method: str = "default"
     soil: dict | None = None
     model: str | None = None
+    rover: str | None = None
     use_reference: bool = False
     truth: bool = False
     carry_reference: bool = False
@@ -338,11 +340,9 @@ class Replay:
             if (o.truth or o.use_reference) and not has_ref:
                 what = {"slipest": "a 'slip' column", "ros2": "a reference slip topic (--slip-topic)"}[kind]
                 raise LogFormatError(f"--truth and --use-reference need {what}, the log has none", self.source_name)
-            self.model = None
-            if o.model:
-                from slipest.inverse.surrogate import load_inverse_model
+            from slipest.rover.file import model_from_files
 
-                self.model = load_inverse_model(o.model)
+            self.model = model_from_files(o.model, o.rover, self.legs)
             self._estimator(0)  # the options are checked before anything is read
         except BaseException:
             self.close()

@@ -1,0 +1,187 @@
+"""The rover file: one JSON document holding a rover's calibrated model and its calibration report.
+
+Written by ``slipest calibrate`` (:func:`save_rover`), read by ``--rover
+FILE`` and the Python API (:func:`load_rover`). Versioned by
+``format_version`` (:data:`FORMAT_VERSION`); a file of another version, of
+another kind, made for another number of legs or on another inverse model
+than the one it is loaded with is refused with a :class:`RoverFileError`
+naming the file and what is wrong. Layout (units SI, features in
+:data:`slipest.features.FEATURE_UNITS`)::
+
+    format_version  1
+    kind            "slipest rover model"
+    created_by, created_utc, slipest_version
+    n_legs          legs of the rover's wheel-leg
+    base_model      {"source": "shipped" | a file path, "sha256": of the inverse-model file}
+    discrepancy     the feature discrepancy (slipest.rover.discrepancy.Discrepancy.to_dict)
+    extra_cov       (d, d) extra covariance of the features
+    eq515           the refitted Eq. 5.15 calibration ({"eq515": {...}, "model": {"params": {"nL", "omega"}}})
+    disturbance     null, or the phase-locked az disturbance removed from the samples ({"phase": [rad], "az": [m/s^2]})
+    report          what the calibration found (slipest.rover.calibrate.Calibration.report)
+"""
+
+from __future__ import annotations
+
+import datetime
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+
+from slipest.json_files import read_json
+from slipest.rover.discrepancy import Discrepancy
+from slipest.rover.surrogate import RoverSurrogate
+
+#: Version of the rover file format this slipest reads and writes.
+FORMAT_VERSION = 1
+#: The ``kind`` of a rover file.
+KIND = "slipest rover model"
+#: Keys every rover file has.
+REQUIRED = ("format_version", "kind", "n_legs", "base_model", "discrepancy", "extra_cov", "eq515", "report")
+
+
+class RoverFileError(ValueError):
+    """A rover file is missing, unreadable, of another version or kind, or does not fit what it is used with."""
+
+
+def model_fingerprint(path=None) -> str:
+    """sha256 of an inverse-model file (None: the shipped one)."""
+    if path is None:
+        from importlib import resources
+
+        data = resources.files("slipest").joinpath("data/inverse_model.npz").read_bytes()
+    else:
+        data = Path(path).read_bytes()
+    return hashlib.sha256(data).hexdigest()
+
+
+def rover_document(model: RoverSurrogate, report: dict, created_by: str, base_path=None) -> dict:
+    """The rover file's document of a calibrated model (``base_path``: the inverse-model file it corrects,
+    None: the shipped one)."""
+    from slipest import __version__
+
+    return {
+        "format_version": FORMAT_VERSION,
+        "kind": KIND,
+        "created_by": created_by,
+        "created_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "slipest_version": __version__,
+        "n_legs": int(model.n_legs),
+        "base_model": {"source": "shipped" if base_path is None else str(Path(base_path).resolve()),
+                       "sha256": model_fingerprint(base_path)},
+        "discrepancy": model.discrepancy.to_dict(),
+        "extra_cov": np.asarray(model.extra_cov).tolist(),
+        "eq515": model.eq515,
+        "disturbance": model.disturbance,
+        "report": report,
+    }
+
+
+def save_rover(model: RoverSurrogate, report: dict, path, created_by: str = "slipest calibrate",
+               base_path=None) -> Path:
+    """Write the rover file (parent directories created; NaN written as null). Returns the path."""
+    doc = rover_document(model, report, created_by, base_path)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(_json_safe(doc), indent=1, allow_nan=False) + "\n", encoding="utf-8")
+    return path
+
+
+def _json_safe(x):
+    if isinstance(x, dict):
+        return {str(k): _json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_json_safe(v) for v in x]
+    if isinstance(x, (np.floating, float)):
+        return float(x) if np.isfinite(x) else None
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, np.ndarray):
+        return _json_safe(x.tolist())
+    return x
+
+
+def validate_rover(doc, source: str) -> dict:
+    """Check the document's kind, version and keys; :class:`RoverFileError` naming ``source`` otherwise."""
+    if not isinstance(doc, dict) or doc.get("kind") != KIND:
+        what = doc.get("kind") if isinstance(doc, dict) else type(doc).__name__
+        raise RoverFileError(f"{source}: not a slipest rover file (kind {what!r}; make one with slipest calibrate)")
+    version = doc.get("format_version")
+    if version != FORMAT_VERSION:
+        raise RoverFileError(f"{source}: format_version {version!r} is not supported (this slipest reads "
+                             f"{FORMAT_VERSION}); re-run slipest calibrate on the testbed logs")
+    missing = [k for k in REQUIRED if k not in doc]
+    if missing:
+        raise RoverFileError(f"{source}: missing key(s) {', '.join(missing)}")
+    return doc
+
+
+def load_rover(path, n_legs: int | None = None, base=None) -> RoverSurrogate:
+    """The rover model of a rover file, ready for the estimator (``SlipEstimator(model=...)``, its
+    ``method="eq515"`` included).
+
+    n_legs: the legs of the wheel-leg it will estimate (checked when given).
+    base: the inverse model it corrects (default: the one the file names, the
+    shipped one or its file). :class:`RoverFileError` naming the file when
+    it is missing, unreadable, not a rover file, of another version, made for
+    another number of legs, or made on another inverse model."""
+    doc, source = read_json(path, "", "rover", "slipest calibrate", RoverFileError)
+    source = f"rover file {source}"
+    validate_rover(doc, source)
+    try:
+        legs = int(doc["n_legs"])
+    except (TypeError, ValueError):
+        raise RoverFileError(f"{source}: n_legs {doc['n_legs']!r} is not a number of legs") from None
+    if n_legs is not None and legs != int(n_legs):
+        raise RoverFileError(f"{source} was made for a {legs}-leg wheel-leg, not {n_legs} legs: calibrate this "
+                             "rover's own testbed logs (slipest calibrate --legs N)")
+    if base is None:
+        base = _base_model(doc["base_model"], source)
+    try:
+        disc = Discrepancy.from_dict(doc["discrepancy"])
+        model = RoverSurrogate.of(base, disc, np.asarray(doc["extra_cov"], dtype=float), rover_legs=legs,
+                                  eq515=doc["eq515"], source=source, disturbance=doc.get("disturbance"))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise RoverFileError(f"{source}: malformed rover model ({exc})") from None
+    if base.n_legs != legs:
+        raise RoverFileError(f"{source}: the inverse model is for {base.n_legs} legs, the rover file for {legs}")
+    return model
+
+
+def model_from_files(model=None, rover=None, n_legs: int | None = None):
+    """The estimator's model from what a user names: a rover file (:func:`load_rover`, checked against
+    ``n_legs`` when given), an inverse-model file, or neither (None: the shipped model). ValueError when both
+    are named; the loaders' errors (ValueErrors naming the file) otherwise."""
+    if model and rover:
+        raise ValueError("--model and --rover are exclusive: a rover file already names the inverse model it "
+                         "corrects")
+    if rover:
+        return load_rover(rover, n_legs=n_legs)
+    if model:
+        from slipest.inverse.surrogate import load_inverse_model
+
+        return load_inverse_model(model)
+    return None
+
+
+def _base_model(info, source: str):
+    from slipest.inverse.surrogate import InverseModelError, load_inverse_model
+
+    if not isinstance(info, dict) or "source" not in info:
+        raise RoverFileError(f"{source}: base_model must name its inverse model")
+    where = None if info["source"] == "shipped" else info["source"]
+    try:
+        model = load_inverse_model(where)
+        fingerprint = model_fingerprint(where)
+    except (InverseModelError, OSError) as exc:
+        raise RoverFileError(f"{source}: its inverse model cannot be loaded ({exc})") from None
+    if info.get("sha256") != fingerprint:
+        what = "the shipped inverse model" if where is None else f"the inverse model {where}"
+        raise RoverFileError(f"{source} was calibrated on another version of {what} (its file changed since): "
+                             "re-run slipest calibrate on the testbed logs")
+    return model
+
+
+__all__ = ["FORMAT_VERSION", "KIND", "RoverFileError", "load_rover", "model_fingerprint", "model_from_files", "rover_document",
+           "save_rover", "validate_rover"]

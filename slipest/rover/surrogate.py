@@ -1,0 +1,132 @@
+"""The calibrated surrogate of one rover: the shipped measurement model plus what calibration learnt (pure computation).
+
+:class:`RoverSurrogate` is a :class:`~slipest.inverse.surrogate.FeatureSurrogate`
+(the estimator takes it wherever it takes the shipped model, one code path)
+whose mean features carry the rover's discrepancy and whose covariance
+carries what the discrepancy does not explain::
+
+    mu_rover(x)   = mu(x) + D(slip, kS, phiS, dphi)        (:class:`~slipest.rover.discrepancy.Discrepancy`)
+    R_rover(w, s) = R(w, s) + Q                            (Q: extra covariance, (d, d), feature units^2)
+
+``D`` and ``Q`` do not depend on the leg speed or the IMU noise: they are
+learnt at the testbed's speed and noise (the rover file says which) and
+applied as they are elsewhere. ``disturbance``: an ``az`` disturbance
+locked to the leg phase that the calibration learnt from the testbed's
+waveforms (``{"phase": [rad], "az": [m/s^2]}``, :mod:`slipest.rover.waveform`),
+or None; :attr:`sample_correction` removes it from a cycle's samples before
+their features are computed (:class:`slipest.online.SlipEstimator` applies it). ``eq515``: the Eq. 5.15 calibration refitted
+on the same testbed logs (a calibration dict as
+:meth:`slipest.inverse.eq515.Eq515Tracker.from_calibration` reads it), or
+None. ``source``: where the rover model came from (its file), for messages.
+Made by :func:`slipest.rover.calibrate.calibrate`, read by
+:func:`slipest.rover.file.load_rover`.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from slipest.inverse.surrogate import FeatureSurrogate
+from slipest.rover.discrepancy import Discrepancy
+
+
+#: The shipped surrogate's mean on a grid, kept for the rover models built on it (calibration builds many: each
+#: would otherwise recompute the same 6 MB for every leg speed and noise); least recently used first out.
+_BASE_GRIDS: OrderedDict = OrderedDict()
+_BASE_GRIDS_KEPT = 12
+
+
+def _base_grid(model: FeatureSurrogate, levels, omega: float, noise_smooth: float) -> np.ndarray:
+    key = (id(model.coef), tuple(np.asarray(v, dtype=float).tobytes() for v in levels), float(omega),
+           float(noise_smooth))
+    hit = _BASE_GRIDS.get(key)
+    if hit is not None and hit[0] is model.coef:
+        _BASE_GRIDS.move_to_end(key)
+        return hit[1]
+    grid = FeatureSurrogate.mean_on_grid(model, *levels, omega, noise_smooth)
+    grid.flags.writeable = False
+    _BASE_GRIDS[key] = (model.coef, grid)
+    while len(_BASE_GRIDS) > _BASE_GRIDS_KEPT:
+        _BASE_GRIDS.popitem(last=False)
+    return grid
+
+
+@dataclass(frozen=True)
+class RoverSurrogate(FeatureSurrogate):
+    """The shipped surrogate's fields, and ``discrepancy``, ``extra_cov`` ``(d, d)``, ``rover_legs``, ``eq515``,
+    ``source`` (see the module docstring)."""
+
+    discrepancy: Discrepancy = None
+    extra_cov: np.ndarray = None
+    rover_legs: int = 4
+    eq515: dict | None = None
+    source: str = "rover model"
+    disturbance: dict | None = None
+
+    def __post_init__(self):
+        super().__post_init__()
+        d = len(self.features)
+        if self.discrepancy is None or tuple(self.discrepancy.features) != tuple(self.features):
+            raise ValueError(f"{self.source}: the discrepancy must be over the model's features {list(self.features)}")
+        q = np.asarray(self.extra_cov, dtype=float)
+        if q.shape != (d, d) or not np.all(np.isfinite(q)) or not np.allclose(q, q.T, atol=1e-12 * max(1.0, abs(q).max())):
+            raise ValueError(f"{self.source}: extra_cov must be a symmetric finite ({d}, {d}) matrix")
+        if np.linalg.eigvalsh(0.5 * (q + q.T)).min() < -1e-9 * max(1.0, abs(q).max()):
+            raise ValueError(f"{self.source}: extra_cov must be positive semi-definite")
+        if self.disturbance is not None:
+            ph = np.asarray(self.disturbance.get("phase", ()), dtype=float)
+            az = np.asarray(self.disturbance.get("az", ()), dtype=float)
+            if ph.ndim != 1 or ph.shape != az.shape or ph.size < 4 or not (np.all(np.isfinite(ph))
+                                                                           and np.all(np.isfinite(az))):
+                raise ValueError(f"{self.source}: the disturbance must be equal lists of at least 4 finite phases "
+                                 "and accelerations")
+
+    @classmethod
+    def of(cls, base: FeatureSurrogate, discrepancy: Discrepancy, extra_cov, **rover) -> "RoverSurrogate":
+        """The rover model on ``base`` (the shipped surrogate, or a model of the same kind)."""
+        own = {f.name: getattr(base, f.name) for f in fields(FeatureSurrogate)}
+        return cls(**own, discrepancy=discrepancy, extra_cov=np.asarray(extra_cov, dtype=float), **rover)
+
+    @property
+    def sample_correction(self):
+        """``correct(theta_phase [rad], az [m/s^2]) -> az`` removing the learnt disturbance from a cycle's
+        samples, or None when the rover has none."""
+        if self.disturbance is None:
+            return None
+        from functools import partial
+
+        from slipest.rover.waveform import phase_correction
+
+        return partial(phase_correction, np.asarray(self.disturbance["phase"], dtype=float),
+                       np.asarray(self.disturbance["az"], dtype=float), self.n_legs)
+
+    @property
+    def base(self) -> FeatureSurrogate:
+        """The surrogate without the rover's correction."""
+        return FeatureSurrogate(**{f.name: getattr(self, f.name) for f in fields(FeatureSurrogate)})
+
+    @property
+    def n_legs(self) -> int:
+        """Legs of the rover's wheel-leg [-]."""
+        return int(self.rover_legs)
+
+    def mean(self, x) -> np.ndarray:
+        """Mean features ``(..., d)`` at points ``x`` ``(..., 6)`` (as :meth:`FeatureSurrogate.mean`), corrected."""
+        x = np.asarray(x, dtype=float)
+        return super().mean(x) + self.discrepancy.evaluate(x[..., :4])
+
+    def mean_on_grid(self, slip_nodes, kS_levels, phiS_levels, dphi_levels, omega: float,
+                     noise_smooth: float) -> np.ndarray:
+        """As :meth:`FeatureSurrogate.mean_on_grid`, corrected."""
+        levels = (slip_nodes, kS_levels, phiS_levels, dphi_levels)
+        return _base_grid(self, levels, omega, noise_smooth) + self.discrepancy.on_grid(*levels)
+
+    def cov(self, omega: float, noise_smooth: float) -> np.ndarray:
+        """``R + Q`` ``(d, d)`` (:meth:`FeatureSurrogate.cov` plus the extra covariance)."""
+        return super().cov(omega, noise_smooth) + self.extra_cov
+
+
+__all__ = ["RoverSurrogate"]

@@ -1,0 +1,296 @@
+"""The rover calibration: the discrepancy and the calibrated surrogate, the rover file, and the loop end to end.
+
+End to end (real files, real subprocesses): testbed logs of a simulated
+rover whose IMU low-passes its signal are calibrated with ``slipest
+calibrate``; a drive of the same rover on another soil, replayed with
+``--rover``, must come out better than without it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import subprocess
+import sys
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from slipest.inverse.grid import SoilGrid
+from slipest.inverse.surrogate import load_inverse_model
+from slipest.io.log_csv import LogWriter
+from slipest.model.params import StickSlipParams
+from slipest.model.scenario import Scenario
+from slipest.model.stream import simulate_stream
+from slipest.rover.discrepancy import Discrepancy, fit_discrepancy, slip_terms, soil_terms
+from slipest.rover.file import RoverFileError, load_rover, save_rover
+from slipest.rover.surrogate import RoverSurrogate
+
+EFFECT = {"name": "imu_lowpass", "cutoff": 4.0, "order": 2}
+
+
+def _random_discrepancy(model, seed=0, terms=None):
+    rng = np.random.default_rng(seed)
+    terms = soil_terms(3) if terms is None else terms
+    return Discrepancy(model.features, terms, rng.normal(0, 0.01, (len(terms), len(model.features))),
+                       model.center[:4], model.halfwidth[:4])
+
+
+def test_discrepancy_on_the_grid_is_its_value_at_the_grid_points():
+    m = load_inverse_model()
+    d = _random_discrepancy(m)
+    g = SoilGrid(np.array([600.0, 1200.0]), np.array([0.3, 0.5, 0.7]), np.array([0.0, 0.1, 0.25]))
+    slips = np.array([0.0, 0.17, 0.5])
+    grid = d.on_grid(slips, g.kS, g.phiS, g.dphi)
+    k, p, q, s = np.meshgrid(g.kS, g.phiS, g.dphi, slips, indexing="ij")
+    points = np.stack([s, k, p, q], axis=-1)
+    np.testing.assert_allclose(grid, d.evaluate(points), rtol=1e-10, atol=1e-12)
+
+
+def test_rover_surrogate_adds_the_discrepancy_and_the_extra_covariance():
+    m = load_inverse_model()
+    d = _random_discrepancy(m, 1)
+    q = np.diag(np.linspace(1e-4, 2e-4, len(m.features)))
+    r = RoverSurrogate.of(m, d, q)
+    x = np.array([[0.2, 900.0, 0.5, 0.15, 0.63, 0.004], [0.4, 1300.0, 0.7, 0.3, 0.9, 0.002]])
+    np.testing.assert_allclose(r.mean(x), m.mean(x) + d.evaluate(x[:, :4]), rtol=1e-12)
+    g = SoilGrid.default()
+    slips = np.array([0.1, 0.3])
+    np.testing.assert_allclose(r.mean_on_grid(slips, g.kS, g.phiS, g.dphi, 0.63, 0.004),
+                               m.mean_on_grid(slips, g.kS, g.phiS, g.dphi, 0.63, 0.004)
+                               + d.on_grid(slips, g.kS, g.phiS, g.dphi), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(r.cov(0.63, 0.004), m.cov(0.63, 0.004) + q, rtol=1e-12)
+
+
+def test_a_zero_correction_gives_the_shipped_estimates():
+    """The rover model with nothing learnt and the shipped model: one estimator, the same estimates."""
+    from slipest.estimator import SoilSlipEstimator
+    from slipest.inverse.simdata import simulate_features
+
+    m = load_inverse_model()
+    zero = RoverSurrogate.of(m, Discrepancy.zero(m.features, m.center[:4], m.halfwidth[:4]), np.zeros((14, 14)))
+    x = np.column_stack([np.linspace(0.05, 0.45, 6), np.full(6, 900.0), np.full(6, 0.5), np.full(6, 0.15),
+                         np.full(6, 0.63)])
+    rows = simulate_features(x, 1000.0, 0.01, np.random.default_rng(4))
+    a = SoilSlipEstimator(model=m).update_batch(rows)
+    b = SoilSlipEstimator(model=zero).update_batch(rows)
+    np.testing.assert_allclose(a["slip"], b["slip"], atol=1e-9)
+    np.testing.assert_allclose(a["slip_std"], b["slip_std"], atol=1e-9)
+
+
+def test_fit_recovers_a_discrepancy_in_slip():
+    m = load_inverse_model()
+    true = _random_discrepancy(m, 2, slip_terms(2))
+    rng = np.random.default_rng(3)
+    x4 = np.column_stack([rng.uniform(0, 0.5, 200), rng.uniform(500, 1500, 200), rng.uniform(0.2, 0.8, 200),
+                          rng.uniform(0, 0.3, 200)])
+    fitted = fit_discrepancy(x4, true.evaluate(x4), slip_terms(2), m.features, m.center[:4], m.halfwidth[:4],
+                             ridge=1e-9)
+    np.testing.assert_allclose(fitted.coef, true.coef, atol=1e-6)
+    total = true.plus(fitted)
+    np.testing.assert_allclose(total.evaluate(x4), 2 * true.evaluate(x4), atol=1e-6)
+
+
+# ------------------------------------------------------------------ the rover file
+
+
+def _rover(tmp_path, legs=4):
+    m = load_inverse_model()
+    model = RoverSurrogate.of(m, _random_discrepancy(m, 5), np.eye(len(m.features)) * 1e-5, rover_legs=legs,
+                              eq515={"eq515": {"amu": 1.0, "bmu": 0.0, "cI": 0.0, "cmu": 0.0, "cK": 0.0,
+                                               "rmse_end_to_end": 0.05}, "model": {"params": {"nL": legs, "omega": 0.63}}})
+    return model, save_rover(model, {"note": "test", "value": math.nan}, tmp_path / "rover.json")
+
+
+def test_a_rover_file_loads_back_as_the_same_model(tmp_path):
+    model, path = _rover(tmp_path)
+    loaded = load_rover(path, n_legs=4)
+    x = np.array([[0.25, 1000.0, 0.6, 0.2, 0.7, 0.003]])
+    np.testing.assert_allclose(loaded.mean(x), model.mean(x), rtol=1e-12)
+    np.testing.assert_allclose(loaded.cov(0.7, 0.003), model.cov(0.7, 0.003), rtol=1e-12)
+    assert loaded.eq515 == model.eq515 and loaded.n_legs == 4
+    doc = json.loads(path.read_text())
+    assert doc["report"]["value"] is None  # NaN written as JSON null
+
+
+def test_a_rover_file_for_other_legs_or_another_version_is_refused_naming_it(tmp_path):
+    _, path = _rover(tmp_path)
+    with pytest.raises(RoverFileError, match=r"rover file .*rover\.json was made for a 4-leg wheel-leg, not 3 legs"):
+        load_rover(path, n_legs=3)
+    doc = json.loads(path.read_text())
+    for change, message in (({"format_version": 2}, "format_version 2 is not supported"),
+                            ({"kind": "calibration"}, "not a slipest rover file"),
+                            ({"base_model": {"source": "shipped", "sha256": "0" * 64}}, "another version of the shipped"),
+                            ({"extra_cov": [[1.0]]}, "malformed rover model")):
+        bad = tmp_path / "bad.json"
+        bad.write_text(json.dumps({**doc, **change}))
+        with pytest.raises(RoverFileError, match=message):
+            load_rover(bad)
+    with pytest.raises(RoverFileError, match="not found"):
+        load_rover(tmp_path / "missing.json")
+
+
+def test_the_online_estimator_takes_a_rover_model_and_its_eq515(tmp_path):
+    from slipest.online import SlipEstimator
+
+    _, path = _rover(tmp_path)
+    rover = load_rover(path)
+    est = SlipEstimator(n_legs=4, model=rover)
+    assert est.filter.model is rover
+    eq = SlipEstimator(n_legs=4, method="eq515", soil={"kS": 900.0, "dphi": 0.2}, model=rover)
+    assert eq.filter.inv.amu == 1.0 and eq.filter.inv.slip_std == 0.05
+    with pytest.raises(ValueError, match="4-leg"):
+        SlipEstimator(n_legs=3, model=rover)
+
+
+# ------------------------------------------------------------------ end to end, real files and processes
+
+
+def _write(path, scenario):
+    s = simulate_stream(scenario)
+    with LogWriter(path, ("t", "az", "theta", "slip"), metadata={"nL": 4, "rate": "1000"}) as w:
+        w.write(s.t, s.az, s.theta, s.slip)
+    return str(path)
+
+
+def _scenario(seed, soil, slips, effect=EFFECT):
+    base = StickSlipParams(kS=soil[0], phiS=soil[1], phiD=soil[2])
+    sc = Scenario.per_cycle(base, {"rate": 1000.0, "noise_g": 0.01, "seed": seed}, slip=np.asarray(slips, float))
+    return replace(sc, effects=(effect,))
+
+
+@pytest.fixture(scope="module")
+def rover_logs(tmp_path_factory):
+    d = tmp_path_factory.mktemp("rover")
+    rng = np.random.default_rng(12)
+    levels = np.array([0.05, 0.15, 0.25, 0.35, 0.45])
+    tb = [_write(d / f"testbed{j}.csv", _scenario(20 + j, soil, np.repeat(rng.permutation(levels), 3)))
+          for j, soil in enumerate([(800.0, 0.5, 0.32), (1200.0, 0.62, 0.42)])]
+    drive_slip = np.repeat(rng.uniform(0.05, 0.45, 7), 3)
+    drive = _write(d / "drive.csv", _scenario(30, (1000.0, 0.56, 0.36), drive_slip))
+    return d, tb, drive
+
+
+def _slipest(*args, check=True):
+    return subprocess.run([sys.executable, "-m", "slipest", *map(str, args)], capture_output=True, text=True,
+                          timeout=300, check=check)
+
+
+def _truth_rmse(stderr: str) -> float:
+    m = re.search(r"truth: slip RMSE ([0-9.]+)", stderr)
+    assert m, stderr
+    return float(m.group(1))
+
+
+def test_calibrate_then_replay_with_the_rover_file_beats_the_shipped_model(rover_logs):
+    d, tb, drive = rover_logs
+    out = d / "rover.json"
+    r = _slipest("calibrate", *tb, "--legs", "4", "--no-diagnosis", "--batch", "100", "--no-progress", "-o", out)
+    assert r.returncode == 0, r.stderr
+    assert "testbed correction in slip" in r.stdout and "IMU: noise 0.01" in r.stdout, r.stdout
+    doc = json.loads(out.read_text())
+    assert doc["n_legs"] == 4 and doc["report"]["imu"]["noise_g"] == pytest.approx(0.01, rel=0.2)
+    before = _truth_rmse(_slipest("replay", drive, "--truth", "-o", d / "a.csv").stderr)
+    after = _truth_rmse(_slipest("replay", drive, "--truth", "--rover", out, "-o", d / "b.csv").stderr)
+    assert after < 0.7 * before, (before, after)
+    eq = _slipest("replay", drive, "--truth", "--rover", out, "--method", "eq515", "--kS", "1000", "--dphi", "0.2",
+                  "-o", d / "c.csv")
+    assert eq.returncode == 0 and "method eq515" in eq.stderr, eq.stderr
+    wrong = _slipest("replay", drive, "--rover", out, "--legs", "3", "-o", d / "e.csv", check=False)
+    assert wrong.returncode == 2 and "was made for a 4-leg wheel-leg, not 3 legs" in wrong.stderr
+
+
+def test_calibrate_names_a_log_without_slip(tmp_path, rover_logs):
+    _, tb, _ = rover_logs
+    s = simulate_stream(Scenario.constant(3, noise_g=0.01, seed=1))
+    path = tmp_path / "noslip.csv"
+    with LogWriter(path, ("t", "az", "theta")) as w:
+        w.write(s.t, s.az, s.theta)
+    r = _slipest("calibrate", tb[0], path, "--no-progress", "-o", tmp_path / "r.json", check=False)
+    assert r.returncode == 1 and "noslip.csv" in r.stderr and "no 'slip' column" in r.stderr, r.stderr
+    assert not (tmp_path / "r.json").exists()
+
+
+def test_a_named_effect_gives_a_physics_correction_that_transfers_to_other_soils(rover_logs):
+    """The simulator with the effect the diagnosis would name, as a feature discrepancy: the testbed logs'
+    blind estimates (soil unknown) improve."""
+    from slipest.io.log_csv import read_log
+    from slipest.rover.calibrate import Candidate, CalibrateOptions, _build_candidate
+    from slipest.rover.fit import blind_score
+    from slipest.rover.testbed import TestbedLog
+
+    _, tb, _ = rover_logs
+    logs = []
+    for p in tb:
+        log = read_log(p)
+        logs.append(TestbedLog.from_samples(p, log.t, log.az, log.theta, log.slip))
+    base = load_inverse_model()
+    cand = Candidate("imu_lowpass", (EFFECT,), 0.3, "test")
+    _build_candidate(base, cand, logs, CalibrateOptions(batch=150, blind_start=3), 4, np.random.default_rng(0))
+    shipped = [blind_score(base, lg, 3, 4)["slip_rmse"] for lg in logs]
+    assert cand.slip_rmse < 0.7 * float(np.sqrt(np.mean(np.square(shipped)))), (cand.scores, shipped)
+
+
+def test_the_demo_estimates_a_rover_with_an_effect_both_ways_side_by_side(tmp_path):
+    """``slipest demo --effect ... --rover ...``: the device's scenario carries the effect, and each cycle is
+    estimated by the rover's model and by the shipped one from the same samples."""
+    import tomllib
+
+    from slipest.cli.demo import DEMO_SCENARIO, _SideBySide, scenario_toml
+    from slipest.online import SlipEstimator
+
+    doc = {**DEMO_SCENARIO, "effect": [EFFECT]}
+    sc = Scenario.from_dict(tomllib.loads(scenario_toml(doc)))
+    assert sc.effects == (EFFECT,)
+    _, path = _rover(tmp_path)
+    pair = _SideBySide(SlipEstimator(n_legs=4, model=load_rover(path)), SlipEstimator(n_legs=4))
+    s = simulate_stream(replace(sc, cycles=sc.cycles[:4], noise_g=0.01, seed=3))
+    out = pair.push_many(s.t[:40000], s.az[:40000], s.theta[:40000])
+    out += [e for i in range(40000, len(s.t)) for e in pair.push(s.t[i], s.az[i], s.theta[i])]
+    out += pair.finish()
+    assert [e.cycle for e in out] == sorted(pair.shipped) and len(out) >= 3
+    both = [(e, pair.shipped[e.cycle]) for e in out if e.ok]
+    assert both and all(a.slip != b.slip for a, b in both)  # two models, two estimates of each cycle
+    assert pair.counters["cycles"] == len(out)
+
+
+def test_the_api_example_loads_a_rover_file(tmp_path):
+    """docs/api.md's rover example, run as written with its file name filled in."""
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "api.md").read_text()
+    (code,) = [b for b in re.findall(r"```python\n(.*?)```", text, re.S) if "load_rover(" in b]
+    _, path = _rover(tmp_path)
+    assert '"rover.json"' in code
+    ns: dict = {}
+    exec(compile(code.replace('"rover.json"', repr(str(path))), "docs/api.md", "exec"), ns)
+    assert ns["est"].filter.model is ns["rover"] and ns["eq"].method == "eq515"
+
+
+def test_a_learnt_disturbance_is_removed_from_the_samples_before_the_features(tmp_path):
+    """A rover whose az carries a phase-locked disturbance, estimated with a rover model that knows it, gives
+    the estimates the shipped model gives the same stream without it; the disturbance survives the file."""
+    from slipest.online import SlipEstimator
+    from slipest.rover.waveform import phase_correction
+
+    m = load_inverse_model()
+    phases = np.linspace(-math.pi / 4, math.pi / 4, 250, endpoint=False) + math.pi / 4 / 250
+    wave = 3.0 * np.exp(-np.clip(phases, 0, None) / 0.2) * np.sin(40 * phases) * (phases >= 0)
+    rover = RoverSurrogate.of(m, Discrepancy.zero(m.features, m.center[:4], m.halfwidth[:4]), np.zeros((14, 14)),
+                              disturbance={"phase": phases.tolist(), "az": wave.tolist()})
+    path = save_rover(rover, {}, tmp_path / "rover.json")
+    loaded = load_rover(path)
+    s = simulate_stream(Scenario.per_cycle(StickSlipParams(kS=900.0, phiS=0.55, phiD=0.35),
+                                           {"rate": 1000.0, "noise_g": 0.01, "seed": 5},
+                                           slip=np.array([0.1, 0.3, 0.2, 0.4, 0.25])))
+    phase = np.mod(s.theta + math.pi / 4, math.pi / 2) - math.pi / 4
+    disturbed = -phase_correction(phases, wave, 4, phase, np.zeros_like(s.az)) + s.az
+    clean = SlipEstimator(n_legs=4).push_many(s.t, s.az, s.theta)
+    fixed = SlipEstimator(n_legs=4, model=loaded).push_many(s.t, disturbed, s.theta)
+    raw = SlipEstimator(n_legs=4).push_many(s.t, disturbed, s.theta)
+    ok = [(a, b, c) for a, b, c in zip(clean, fixed, raw) if a.ok]
+    assert len(ok) >= 3
+    np.testing.assert_allclose([b.slip for _, b, _ in ok], [a.slip for a, _, _ in ok], atol=1e-6)
+    assert max(abs(c.slip - a.slip) for a, _, c in ok) > 0.05  # the disturbance matters without the correction
