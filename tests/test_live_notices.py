@@ -37,7 +37,8 @@ def test_a_port_that_keeps_going_away_says_so_a_few_times_not_hundreds(tmp_path)
 
     master = new_pty()
     with Stopping() as procs:
-        est = procs.add(slipest_cmd("serial", str(link), "--duration", "5", "--report", str(report)))
+        est = procs.add(slipest_cmd("serial", str(link), "--duration", "8", "--report", str(report)))
+        est.wait_err("reading ", timeout=60)  # started (a loaded machine takes seconds): then 4 s of flapping
         deadline = time.monotonic() + 4.0
         while time.monotonic() < deadline:
             p = select.poll()
