@@ -294,3 +294,18 @@ def test_a_learnt_disturbance_is_removed_from_the_samples_before_the_features(tm
     assert len(ok) >= 3
     np.testing.assert_allclose([b.slip for _, b, _ in ok], [a.slip for a, _, _ in ok], atol=1e-6)
     assert max(abs(c.slip - a.slip) for a, _, c in ok) > 0.05  # the disturbance matters without the correction
+
+
+def test_a_live_config_file_names_the_rover_file_relative_to_itself(tmp_path):
+    from slipest.cli.estimator_args import model_from_args
+    from slipest.cli.main import parse_args
+
+    _, path = _rover(tmp_path)
+    cfg = tmp_path / "service.toml"
+    cfg.write_text('port = "/dev/ttyUSB0"\nlegs = 4\nrover = "rover.json"\n')
+    args = parse_args(["serial", "--config", str(cfg)])
+    assert args.rover == str(path)
+    assert isinstance(model_from_args(args, args.legs), RoverSurrogate)
+    args = parse_args(["replay", "log.csv", "--rover", str(path), "--model", "m.npz"])
+    with pytest.raises(ValueError, match="--model and --rover are exclusive"):
+        model_from_args(args)

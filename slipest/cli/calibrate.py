@@ -5,9 +5,11 @@ their 'slip' column (testbed runs, runs with visual odometry), each on its
 own soil (unknown), and fits what they say about this rover: the
 diagnosis's kappa and the catalog effect it names with its parameters, the
 IMU noise, and a correction of the estimator's model (a feature
-discrepancy over slip and soil, from the simulator with the named effect,
-plus one learnt from the logs where that helps cycles it was not fitted
-on), with the extra uncertainty of what the correction does not explain.
+discrepancy over slip and soil from the simulator with the named effect,
+or a disturbance locked to the leg phase learnt from the logs' waveforms
+and removed from the samples; plus a correction in slip learnt from the
+logs where that helps logs it was not fitted on), with the extra
+uncertainty of what the correction does not explain.
 It refits the thesis's Eq. 5.15 on the same logs. Everything goes into one
 file (JSON) that the estimator takes with --rover:
 

@@ -80,9 +80,12 @@ MODEL_KAPPA = 0.3
 #: An effect the diagnosis ranks first without naming it is still tried when it shrinks the gap this much.
 PARTIAL_SHRINK = 0.3
 #: A disturbance learnt from the waveforms is learnt when no named effect shrank a log's gap this much ...
-WELL_EXPLAINED = 0.9
-#: ... and counts as named (as an effect the diagnosis names) when it shrinks the logs' held-out gaps this much.
+WELL_EXPLAINED = 0.98
+#: ... and counts as named (as an effect the diagnosis names) when it shrinks the logs' held-out gaps this much;
+#: against a named catalog effect it must leave at most this share of the gap the effect leaves (the effect's
+#: physics carries to other soils, a mean waveform may not).
 DISTURBANCE_SHRINK = 0.5
+DISTURBANCE_GAP_RATIO = 0.5
 
 
 @dataclass(frozen=True)
@@ -254,11 +257,15 @@ def _disturbance_candidate(diagnoses, geometry: Geometry, options: CalibrateOpti
 
 
 def _choose(cands, shipped_rmse: float):
-    """The candidate to use, or None: the effect the diagnosis named (the one whose fit shrank the gap most),
+    """The candidate to use, or None: the effect the diagnosis named (the one whose fit shrank the held-out gap
+    most; a learnt disturbance must leave at most :data:`DISTURBANCE_GAP_RATIO` of the gap an effect leaves),
     unless its blind estimates of the testbed logs are worse than the shipped model's by more than
     :data:`MAX_LOSS`; otherwise a candidate not named (ranked first, or a nominal ``kappa``) whose blind
     estimates beat the shipped model's by :data:`MIN_GAIN`, the best of them."""
-    named = sorted((c for c in cands if c.named), key=lambda c: -c.shrink)
+    def left(c):  # the share of the held-out gap it leaves, a learnt disturbance's counted against an effect's
+        return (1.0 - c.shrink) / (DISTURBANCE_GAP_RATIO if c.disturbance is not None else 1.0)
+
+    named = sorted((c for c in cands if c.named), key=left)
     for c in named:
         if c.slip_rmse <= (1.0 + MAX_LOSS) * shipped_rmse:
             return c
