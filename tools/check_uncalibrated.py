@@ -171,8 +171,9 @@ def main(argv=None) -> int:
         r["params"] = log["params"]
         per_truth[truth].append(r)
         f = figures([r], args.from_cycle)
-        tqdm.write(f"{truth:21s} case {k}: slip RMSE {f.get('rmse', math.nan):.3f} cover {f.get('coverage95', math.nan):4.0%}"
-                   f" estimated {f['estimated']:4.0%} misfit {f.get('misfit_share', math.nan):4.0%}  dDa "
+        tqdm.write(f"{truth:21s} case {k}: slip RMSE {f.get('rmse', math.nan):.3f} cover "
+                   f"{f.get('coverage95', math.nan):4.0%} estimated {f['estimated']:4.0%} misfit "
+                   f"{f.get('misfit_share', math.nan):4.0%}  dDa "
                    f"{log['change'] * 100:5.1f}%", file=sys.stderr)
     bar.close()
     print(f"uncalibrated estimator on logs with one unmodelled effect: {args.cases} logs per effect, seed "
