@@ -15,10 +15,11 @@ slip nodes; the measurement model is the feature surrogate
    that hold the mass; likelihood ``N(f; mu(slip, soil), R / slip_temper)``;
 3. soil update: the weights raised to ``forget``, times the cycle's soil
    likelihood (slip marginalised, or at the reference slip when one is given
-   and ``use_reference`` is on) raised to ``soil_temper``, or to
-   ``soil_temper * repeat_temper`` while the slip has not varied over the
-   recent cycles (the surrogate's error repeats with the slip, so repeated
-   cycles add little new evidence); a cycle with no break-away detected
+   and ``use_reference`` is on) raised to ``soil_temper``, or, without a
+   reference, to ``soil_temper * repeat_temper`` while the slip has not
+   varied over the recent cycles (slip and soil are then confounded and the
+   surrogate's error repeats, so repeated cycles add little new evidence); a
+   cycle with no break-away detected
    (``onset`` at the end of the window) carries no soil information and does
    not update the soil.
 
@@ -141,8 +142,9 @@ def _cycle_step(w, prior, hazard, soil_temper, repeat_temper, moments, forget, c
     when ``ref_k >= 0``: between nodes ``ref_k`` and ``ref_k + 1`` at
     fraction ``ref_a``; the prior weights raised to ``forget`` first; the
     likelihood raised to ``soil_temper``, times ``repeat_temper`` while the
-    recent slips have not varied: see :func:`slip_spread_weight`, on the
-    running moments ``moments``, updated in place with this cycle's slip),
+    recent slips have not varied and no reference is given: see
+    :func:`slip_spread_weight`, on the running moments ``moments``, updated
+    in place with this cycle's slip),
     or no update when ``skip`` or when the cycle's misfit reaches ``gross``
     (the model does not explain it at all: neither the soil nor the slip
     moments learn from it); then the moments.
@@ -188,6 +190,8 @@ def _cycle_step(w, prior, hazard, soil_temper, repeat_temper, moments, forget, c
         skip = True
     else:
         temper = soil_temper * slip_spread_weight(moments, out[0], repeat_temper)
+        if ref_k >= 0:  # the slip is given: nothing for repeated slips to confound
+            temper = soil_temper
     if not skip:
         ll = lw  # reused: the log weights are not needed any more
         if ref_k >= 0:
@@ -248,7 +252,8 @@ class SoilSlipEstimator(CycleEstimator):
         model's median on clean simulated cycles; inf: never widen for a
         persistent discrepancy).
     repeat_temper: share of ``soil_temper`` a cycle's soil update gets while
-        the recent cycles' slips have not varied (1: as any cycle) [-].
+        the recent cycles' slips have not varied (1: as any cycle; not applied
+        to updates by a reference slip) [-].
     gross_misfit: misfit from which a cycle is not estimated: its estimate
         has every value NaN but ``misfit`` and ``discrepancy``, and it
         updates nothing but the running discrepancy (inf: never) [-].

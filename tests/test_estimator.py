@@ -372,3 +372,19 @@ def test_cycles_the_model_cannot_explain_are_flagged_misfit_not_estimated(impact
 def test_clean_cycles_give_no_fit_hint(change_estimates):
     est = change_estimates
     assert all(e.quality != "misfit" and e.discrepancy < 2.0 for e in est)
+
+
+def test_learning_from_reference_slips_is_not_tempered_for_repeats(change_stream):
+    """Reference slips held for several cycles (a testbed's slip levels) teach the soil as before: the repeat
+    tempering is for blind updates, where slip and soil are confounded."""
+    s = change_stream
+    feats = [cycle_features(c.theta_phase, c.az, c.t) for c in CycleSegmenter(4).push_many(s.t, s.az, s.theta)][:10]
+    refs = np.repeat([0.2, 0.4], 5)
+    a, b = SoilSlipEstimator(use_reference=True), SoilSlipEstimator(use_reference=True, repeat_temper=1.0)
+    ra = [a.update(f, r) for f, r in zip(feats, refs)]
+    rb = [b.update(f, r) for f, r in zip(feats, refs)]
+    assert all(x.used_reference for x in ra)
+    assert [(x.slip, x.dphi, x.dphi_std) for x in ra] == [(x.slip, x.dphi, x.dphi_std) for x in rb]
+    c = SoilSlipEstimator(repeat_temper=1.0)  # blind: the tempering does change what is learnt
+    d = SoilSlipEstimator()
+    assert [c.update(f).dphi for f in feats] != [d.update(f).dphi for f in feats]
