@@ -30,7 +30,10 @@ class CycleEstimate:
     given with the cycle updated what the method learns; misfit: how much
     the cycle's features exceed what the method's model explains (1: within
     it; above 1: the likelihood was widened by that factor; NaN: the method
-    does not check).
+    does not check); discrepancy: how far the recent cycles' features have
+    been from the model, as a variance factor (1: as far as on clean
+    simulated cycles, or nearer; NaN: the method does not check); the
+    likelihood was widened by the larger of the two.
     """
 
     slip: float
@@ -46,11 +49,12 @@ class CycleEstimate:
     change_prob: float
     used_reference: bool
     misfit: float = math.nan
+    discrepancy: float = math.nan
 
     @classmethod
     def nan(cls) -> "CycleEstimate":
         n = math.nan
-        return cls(n, n, n, n, n, n, n, n, n, n, n, False, n)
+        return cls(n, n, n, n, n, n, n, n, n, n, n, False, n, n)
 
 
 class CycleEstimator(ABC):

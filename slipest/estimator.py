@@ -15,9 +15,22 @@ slip nodes; the measurement model is the feature surrogate
    that hold the mass; likelihood ``N(f; mu(slip, soil), R / slip_temper)``;
 3. soil update: the weights raised to ``forget``, times the cycle's soil
    likelihood (slip marginalised, or at the reference slip when one is given
-   and ``use_reference`` is on) raised to ``soil_temper``; a cycle with no
-   break-away detected (``onset`` at the end of the window) carries no soil
-   information and does not update the soil.
+   and ``use_reference`` is on) raised to ``soil_temper``, or, without a
+   reference, to ``soil_temper * repeat_temper`` while the slip has not
+   varied over the recent cycles (slip and soil are then confounded and the
+   surrogate's error repeats, so repeated cycles add little new evidence); a
+   cycle with no break-away detected
+   (``onset`` at the end of the window) carries no soil information and does
+   not update the soil.
+
+Honesty when the model does not fit: a cycle's best candidate (smallest
+squared whitened distance over cells and slip nodes) is compared with what
+clean simulated cycles give. Above ``fit_level`` the cycle is not explained
+(``misfit`` = the excess factor); the recent cycles' best distances, their
+geometric mean over about ``1 / (1 - DISCREPANCY_MEMORY)`` cycles relative
+to their typical clean value ``fit_typical``, give ``discrepancy``, a
+persistent model error. The likelihood's variance is widened by the larger
+of the two, so data the model does not explain get wide intervals.
 
 Limits: the model's geometry and covered leg speeds (``model_legs``,
 ``omega_range``); slip 0-0.5 and the soil grid (:meth:`SoilGrid.default`). One cycle step takes about 0.3-0.6 ms
@@ -71,26 +84,75 @@ DEFAULT_SLIP_TEMPER = 0.4
 #: Squared whitened distance of a cycle's best candidate above which it is not explained by the model, when
 #: the model file does not say (the 99th percentile of a chi-square with 14 degrees of freedom).
 DEFAULT_FIT_LEVEL = 29.1
+#: Typical (median) squared whitened distance of a clean cycle's best candidate, when the model file does not
+#: say (the shipped model's, measured on held-out simulated cycles).
+DEFAULT_FIT_TYPICAL = 5.4
+#: Memory of the running discrepancy: weight of the previous cycles in its log average per cycle [-].
+DISCREPANCY_MEMORY = 0.9
+#: A cycle's best distance enters the running discrepancy as at least this fraction of ``fit_typical`` (one
+#: cycle fitted unusually well does not hide a discrepancy of the next ones).
+FIT_RATIO_MIN = 0.1
+#: Default misfit from which a cycle is not estimated (its best candidate ten times farther, squared, than the
+#: clean cycles' 99th percentile: widening cannot make such an estimate honest).
+DEFAULT_GROSS_MISFIT = 10.0
+#: Default share of ``soil_temper`` a cycle's soil update gets while the slip has not varied [-].
+DEFAULT_REPEAT_TEMPER = 0.3
+#: Spread (standard deviation) of the recent cycles' slips [-] from which they count as varied.
+SLIP_SPREAD = 0.05
+#: Memory of the recent slips' spread: weight of the previous cycles in its running moments per cycle [-].
+SLIP_SPREAD_MEMORY = 0.8
+
+
+@numba.njit(cache=True)
+def slip_spread_weight(moments, slip, repeat_temper):
+    """The share of the soil tempering a cycle gets: ``repeat_temper`` while the recent slips have not varied,
+    rising to 1 as their spread reaches :data:`SLIP_SPREAD`.
+
+    ``moments``: ``(3,)``, the number of slips folded in (0: none yet), then
+    the running mean of the recent slips and of their squares (weights
+    ``SLIP_SPREAD_MEMORY**age``), updated in place with this cycle's
+    ``slip`` [-] first. (No NaN sentinel: the kernel calling it is compiled
+    with fastmath, which assumes no NaN.)
+    """
+    if moments[0] > 0.0:
+        a = SLIP_SPREAD_MEMORY
+        moments[1] = a * moments[1] + (1.0 - a) * slip
+        moments[2] = a * moments[2] + (1.0 - a) * slip * slip
+    else:
+        moments[1] = slip
+        moments[2] = slip * slip
+    moments[0] += 1.0
+    var = max(moments[2] - moments[1] * moments[1], 0.0)
+    return repeat_temper + (1.0 - repeat_temper) * min(1.0, var / (SLIP_SPREAD * SLIP_SPREAD))
 
 
 @numba.njit(cache=True, fastmath=True)
-def _cycle_step(w, prior, hazard, soil_temper, forget, cutoff, node_width, scale, fit_level, table, fw, lp, nodes,
-                node_quant, ref_k, ref_a, skip, summary_x, summary_q, dmat, f32s, f64s, sel, ps, out):
+def _cycle_step(w, prior, hazard, soil_temper, repeat_temper, moments, forget, cutoff, node_width, scale, fit_level,
+                floor, gross, table, fw, lp, nodes, node_quant, ref_k, ref_a, skip, summary_x, summary_q, dmat, f32s,
+                f64s, sel, ps, out):
     """One cycle of the grid filter, in place on the weights ``w`` (the soil posterior over the cells).
 
     predict (hazard mixing with the prior), cell likelihoods on the slip
     nodes ``nodes`` [-] (``table``: columnar ``(D, K, S)``; ``lp``: their
     log prior; ``node_width``: their spacing [-]; ``scale``: the slip
-    tempering; ``fit_level``: the misfit level of :func:`grid_loglik`), slip
+    tempering; ``fit_level``, ``floor``: the misfit level and the widening
+    floor of :func:`grid_loglik`), slip
     marginal on the same nodes over the cells that matter, run-length-1
     change probability, tempered update (by the reference slip's likelihood
     when ``ref_k >= 0``: between nodes ``ref_k`` and ``ref_k + 1`` at
-    fraction ``ref_a``; the prior weights raised to ``forget`` first), or no
-    update when ``skip``; then the moments.
+    fraction ``ref_a``; the prior weights raised to ``forget`` first; the
+    likelihood raised to ``soil_temper``, times ``repeat_temper`` while the
+    recent slips have not varied and no reference is given: see
+    :func:`slip_spread_weight`, on the running moments ``moments``, updated
+    in place with this cycle's slip),
+    or no update when ``skip`` or when the cycle's misfit reaches ``gross``
+    (the model does not explain it at all: neither the soil nor the slip
+    moments learn from it); then the moments.
 
     Writes ``out``: slip [-], its std [-] (``node_quant``: variance added
     for the nodes' spacing), change probability [-], misfit [-] (1: the
-    model explains the cycle), then mean and std of each row of
+    model explains the cycle), the best candidate's squared whitened
+    distance [-], then mean and std of each row of
     ``summary_x`` under the weights (std with ``summary_q`` added to the
     variance). Scratch: ``dmat`` ``(K, S)`` and ``f32s`` ``(3, S)`` float32,
     ``f64s`` ``(2, S)`` float64, ``sel`` ``(S,)`` int64, ``ps`` ``(K,)`` float64.
@@ -98,7 +160,7 @@ def _cycle_step(w, prior, hazard, soil_temper, forget, cutoff, node_width, scale
     S = w.size
     lc = f64s[0]  # cell log-likelihoods
     lw = f64s[1]  # log weights after predict, then the update's log-likelihoods
-    _, misfit = grid_loglik(table, fw, lp, node_width, scale, fit_level, dmat, lc, f32s[:2])
+    best, misfit = grid_loglik(table, fw, lp, node_width, scale, fit_level, dmat, lc, f32s[:2], floor)
     top = -np.inf
     for s in range(S):
         if lc[s] > top:
@@ -122,6 +184,14 @@ def _cycle_step(w, prior, hazard, soil_temper, forget, cutoff, node_width, scale
     out[0], out[1] = node_moments(ps, nodes, node_quant)
     out[2] = change
     out[3] = misfit
+    out[4] = best
+    temper = 0.0
+    if misfit >= gross:
+        skip = True
+    else:
+        temper = soil_temper * slip_spread_weight(moments, out[0], repeat_temper)
+        if ref_k >= 0:  # the slip is given: nothing for repeated slips to confound
+            temper = soil_temper
     if not skip:
         ll = lw  # reused: the log weights are not needed any more
         if ref_k >= 0:
@@ -140,7 +210,7 @@ def _cycle_step(w, prior, hazard, soil_temper, forget, cutoff, node_width, scale
                 mx = ll[s]
         top = -np.inf  # w^forget * L^temper, in logs (the weights span hundreds of decades)
         for s in range(S):
-            v = forget * math.log(w[s]) + soil_temper * (ll[s] - mx) if w[s] > 0.0 else -np.inf
+            v = forget * math.log(w[s]) + temper * (ll[s] - mx) if w[s] > 0.0 else -np.inf
             ll[s] = v
             if v > top:
                 top = v
@@ -150,12 +220,12 @@ def _cycle_step(w, prior, hazard, soil_temper, forget, cutoff, node_width, scale
             tot += w[s]
         for s in range(S):
             w[s] /= tot
-    weighted_moments(w, summary_x, summary_q, out[4:])
+    weighted_moments(w, summary_x, summary_q, out[5:])
 
 
 #: Fields of :class:`CycleEstimate` that :meth:`SoilSlipEstimator.update_batch` returns as arrays.
 BATCH_FIELDS = ("slip", "slip_std", "dphi", "dphi_std", "kS", "kS_std", "phiS", "phiS_std", "phiD", "phiD_std",
-                "change_prob", "used_reference", "misfit")
+                "change_prob", "used_reference", "misfit", "discrepancy")
 
 
 class SoilSlipEstimator(CycleEstimator):
@@ -177,6 +247,16 @@ class SoilSlipEstimator(CycleEstimator):
         cycle counts as not explained by the model and its likelihood is
         widened by the excess (``misfit``; default: the model's, measured on
         clean simulated cycles; inf: never).
+    fit_typical: the best candidate's typical squared whitened distance on
+        clean cycles, the reference of ``discrepancy`` (default: the
+        model's median on clean simulated cycles; inf: never widen for a
+        persistent discrepancy).
+    repeat_temper: share of ``soil_temper`` a cycle's soil update gets while
+        the recent cycles' slips have not varied (1: as any cycle; not applied
+        to updates by a reference slip) [-].
+    gross_misfit: misfit from which a cycle is not estimated: its estimate
+        has every value NaN but ``misfit`` and ``discrepancy``, and it
+        updates nothing but the running discrepancy (inf: never) [-].
     """
 
     def __init__(
@@ -191,11 +271,15 @@ class SoilSlipEstimator(CycleEstimator):
         grid: SoilGrid | None = None,
         n_legs: int = 4,
         fit_level: float | None = None,
+        fit_typical: float | None = None,
+        repeat_temper: float = DEFAULT_REPEAT_TEMPER,
+        gross_misfit: float = DEFAULT_GROSS_MISFIT,
     ):
         if not 0.0 <= hazard < 1.0:
             raise ValueError(f"hazard={hazard} must be in [0, 1)")
-        if not (0.0 < soil_temper <= 1.0 and 0.0 < slip_temper <= 1.0 and 0.0 < forget <= 1.0):
-            raise ValueError("soil_temper, slip_temper and forget must be in (0, 1]")
+        if not (0.0 < soil_temper <= 1.0 and 0.0 < slip_temper <= 1.0 and 0.0 < forget <= 1.0
+                and 0.0 < repeat_temper <= 1.0):
+            raise ValueError("soil_temper, slip_temper, forget and repeat_temper must be in (0, 1]")
         self.model = model or load_inverse_model()
         self.model_legs = self.model.n_legs
         self.omega_range = self.model.covered_range("omega")
@@ -209,6 +293,15 @@ class SoilSlipEstimator(CycleEstimator):
         self.slip_temper = float(slip_temper)
         level = self.model.meta.get("fit_level", DEFAULT_FIT_LEVEL) if fit_level is None else fit_level
         self.fit_level = float(level)
+        if fit_typical is None:
+            fit_typical = self.model.meta.get("fit_level_quantiles", {}).get("q50", DEFAULT_FIT_TYPICAL)
+        if not fit_typical > 0:
+            raise ValueError(f"fit_typical={fit_typical} must be > 0")
+        self.fit_typical = float(fit_typical)
+        self.repeat_temper = float(repeat_temper)
+        if not gross_misfit > 1.0:
+            raise ValueError(f"gross_misfit={gross_misfit} must be > 1")
+        self.gross_misfit = float(gross_misfit)
         self._known = soil is not None and soil.complete
         self._cols = np.ascontiguousarray(self.model.columns, dtype=np.int64)
         self._no_onset = math.pi / n_legs - 1e-9  # onset at or past this: no break-away detected
@@ -233,13 +326,13 @@ class SoilSlipEstimator(CycleEstimator):
             self._f64s = np.empty((2, S))
             self._sel = np.empty(S, dtype=np.int64)
             self._ps = np.empty(self._nodes.size)
-            self._out = np.empty(4 + 2 * self._summary_x.shape[0])
+            self._out = np.empty(5 + 2 * self._summary_x.shape[0])
             # build the table of the middle of the covered speeds and run the compiled kernels once now
             # (not on the first cycle's latency)
             table = self.tables.get(self.model.omega, 0.002)
             self._fw = np.zeros(table.columnar.shape[0], dtype=np.float32)
             self._table = table
-            self._step(self._prior.copy(), 0.0, -1, 0.0, False)
+            self._step(self._prior.copy(), np.zeros(3), 0.0, -1, 0.0, False, 1.0)
         self.reset()
 
     # ------------------------------------------------------------------
@@ -250,6 +343,9 @@ class SoilSlipEstimator(CycleEstimator):
         self.n_reference = 0
         self.n_no_breakaway = 0
         self.n_misfit = 0
+        self.n_gross = 0
+        self._log_fit = 0.0  # running log average of best / fit_typical (0: as on clean cycles)
+        self._moments = np.zeros(3)  # running moments of the recent slips (slip_spread_weight)
         if not self._known:
             self._w = self._prior.copy()
 
@@ -271,14 +367,22 @@ class SoilSlipEstimator(CycleEstimator):
                   self._sel):
             touch(a.reshape(-1))
 
-    def _step(self, w, hazard: float, ref_k: int, ref_a: float, skip: bool) -> np.ndarray:
-        """Run the compiled cycle step on the weights ``w`` (in place) with the current table and ``self._fw``;
-        returns the ``out`` row of :func:`_cycle_step`."""
-        _cycle_step(w, self._prior, hazard, self.soil_temper, self.forget, SLIP_CUTOFF, self._node_width,
-                    self.slip_temper, self.fit_level, self._table.columnar, self._fw, self._lp, self._nodes,
-                    self._node_quant, ref_k, ref_a, skip, self._summary_x, self._summary_q, self._dmat, self._f32s,
-                    self._f64s, self._sel, self._ps, self._out)
+    def _step(self, w, moments, hazard: float, ref_k: int, ref_a: float, skip: bool, floor: float) -> np.ndarray:
+        """Run the compiled cycle step on the weights ``w`` and the slip moments (in place) with the current table
+        and ``self._fw``; returns the ``out`` row of :func:`_cycle_step`."""
+        _cycle_step(w, self._prior, hazard, self.soil_temper, self.repeat_temper, moments, self.forget, SLIP_CUTOFF,
+                    self._node_width, self.slip_temper, self.fit_level, floor, self.gross_misfit,
+                    self._table.columnar, self._fw, self._lp, self._nodes, self._node_quant, ref_k, ref_a, skip,
+                    self._summary_x, self._summary_q, self._dmat, self._f32s, self._f64s, self._sel, self._ps,
+                    self._out)
         return self._out
+
+    @property
+    def discrepancy(self) -> float:
+        """The persistent discrepancy the next cycle's likelihood is widened by [-]: the geometric mean of the
+        recent cycles' best squared whitened distances over ``fit_typical`` (weights ``DISCREPANCY_MEMORY**age``,
+        starting from the clean value), at least 1; 1 with ``fit_typical`` inf."""
+        return math.exp(self._log_fit) if self._log_fit > 0.0 else 1.0
 
     def update(self, features, slip_ref: float | None = None) -> CycleEstimate:
         """One cycle: its full feature row (order of ``FEATURE_NAMES``; its ``omega`` and ``noise_smooth``
@@ -286,7 +390,8 @@ class SoilSlipEstimator(CycleEstimator):
 
         A row with non-finite modelled features raises ``ValueError``
         (the caller must not pass corrupted cycles; :mod:`slipest.online`
-        flags them before).
+        flags them before). A cycle whose misfit reaches ``gross_misfit`` gives
+        an estimate whose values are all NaN but ``misfit`` and ``discrepancy``.
         """
         f = np.asarray(features, dtype=float)
         if f.shape != (len(FEATURE_NAMES),):
@@ -315,8 +420,17 @@ class SoilSlipEstimator(CycleEstimator):
         else:
             ref_k, ref_a = -1, 0.0
         skip = bool(f[_ONSET] >= self._no_onset)  # no break-away: no soil update (module docstring)
-        slip, sd, change, misfit, dm, ds, km, ks, pm, pss, dm2, ds2 = self._step(self._w, self.hazard, ref_k, ref_a,
-                                                                                  skip).tolist()
+        floor = self.discrepancy
+        slip, sd, change, misfit, best, dm, ds, km, ks, pm, pss, dm2, ds2 = self._step(
+            self._w, self._moments, self.hazard, ref_k, ref_a, skip, floor).tolist()
+        if math.isfinite(self.fit_typical) and best >= 0.0:  # the running discrepancy (module docstring)
+            x = math.log(max(best / self.fit_typical, FIT_RATIO_MIN))
+            self._log_fit = DISCREPANCY_MEMORY * self._log_fit + (1.0 - DISCREPANCY_MEMORY) * x
+        if misfit >= self.gross_misfit:  # not explained at all: no estimate (the step learnt nothing from it)
+            self.n_misfit += 1
+            self.n_gross += 1
+            n = math.nan
+            return CycleEstimate(n, n, n, n, n, n, n, n, n, n, n, False, misfit, floor)
         used = use_ref and not skip
         if skip:
             self.n_no_breakaway += 1
@@ -326,7 +440,7 @@ class SoilSlipEstimator(CycleEstimator):
             self.n_reference += 1
         if misfit > 1.0:
             self.n_misfit += 1
-        return CycleEstimate(slip, sd, dm, ds, km, ks, pm, pss, dm2, ds2, change, used, misfit)
+        return CycleEstimate(slip, sd, dm, ds, km, ks, pm, pss, dm2, ds2, change, used, misfit, floor)
 
     def update_batch(self, features_2d, slip_ref=None) -> dict:
         """:meth:`update` over the rows of ``features_2d`` in order (the recursion is sequential).

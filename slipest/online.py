@@ -115,6 +115,36 @@ def _rigid_mean(theta_phase, az, half: float) -> float:
     return float(np.mean(az[sel])) if sel.any() else math.nan
 
 
+#: Running discrepancy (:attr:`Estimate.discrepancy`) from which an estimated cycle counts as off the model:
+#: the recent cycles' best candidates twice as far (squared) from the model as on clean simulated cycles.
+DISCREPANCY_LEVEL = 2.0
+#: Share of the estimated cycles off the model (misfit, or discrepancy from ``DISCREPANCY_LEVEL``) from which a run
+#: is said not to fit the model, once at least ``FIT_MIN_CYCLES`` of them are (:func:`fit_advice`).
+OFF_MODEL_SHARE = 0.2
+FIT_MIN_CYCLES = 5
+
+
+def off_model(misfit: float, discrepancy: float) -> bool:
+    """An estimated cycle the model did not explain: its own features (``misfit`` above 1) or, persistently,
+    the recent cycles' (``discrepancy`` from :data:`DISCREPANCY_LEVEL`)."""
+    return misfit > 1.0 or discrepancy >= DISCREPANCY_LEVEL
+
+
+def fit_advice(cycles: int, cycles_off_model: int) -> str | None:
+    """What to tell people when the data do not fit the estimator's model: a sentence (None when they fit).
+
+    ``cycles``: cycles that reached the estimator (estimated, or flagged ``"misfit"``);
+    ``cycles_off_model``: those off the model (:attr:`SlipEstimator.counters`; see
+    :data:`OFF_MODEL_SHARE`, :data:`FIT_MIN_CYCLES`).
+    """
+    if cycles_off_model < max(FIT_MIN_CYCLES, OFF_MODEL_SHARE * cycles):
+        return None
+    return (f"the data do not fit the estimator's model ({cycles_off_model} of {cycles} cycles off it): this rover "
+            "or soil differs from the simulator, so those cycles got wider intervals or, when the model could not "
+            "explain them at all, no estimate (quality 'misfit'), and slip may still be biased; 'slipest calibrate' "
+            "on testbed logs with a reference slip fits the model to this rover (then estimate with --rover)")
+
+
 #: :meth:`SlipEstimator.push` has the estimator prefetch its tables into the CPU caches once this
 #: fraction of the last cycle's duration has passed since it closed (about 25 ms before the next
 #: close at the models' speed): the estimate on the closing sample then waits less on memory.
@@ -140,7 +170,12 @@ class Estimate:
     (all estimated values NaN); misfit [-]: 1 when the
     model explains the cycle's features, above 1 the factor by which it
     did not and by which the likelihood was widened (NaN: not checked);
-    noise [g]: the IMU noise's standard deviation the cycle was estimated with.
+    noise [g]: the IMU noise's standard deviation the cycle was estimated with;
+    discrepancy [-]: how far the recent cycles' features have been from the
+    model, as a variance factor (1: no farther than clean simulated cycles;
+    NaN: not checked); the likelihood was widened by the larger of misfit
+    and discrepancy, and from :data:`DISCREPANCY_LEVEL` on the data are
+    taken as not fitting the model (``"fit"`` in :attr:`SlipEstimator.hints`).
     """
 
     cycle: int
@@ -163,6 +198,7 @@ class Estimate:
     misfit: float = math.nan
     noise: float = math.nan
     n_repaired: int = 0
+    discrepancy: float = math.nan
 
     @property
     def ok(self) -> bool:
@@ -177,13 +213,14 @@ class Estimate:
                  r: CycleEstimate | None = None, noise: float = math.nan, n_repaired: int = 0) -> "Estimate":
         """The row of closed cycle ``cyc`` (a :class:`~slipest.segmentation.LegCycle`): estimated when
         ``r`` is given (``quality`` "ok" or "repaired"), else every estimated value NaN and ``quality``
-        says why."""
+        says why (with ``r`` given too for ``"misfit"``: its values are NaN but ``misfit`` and
+        ``discrepancy``)."""
         r = r or _NO_ESTIMATE
         return cls(cycle=int(cyc.k), t_end=float(cyc.t_end), delta_a=delta_a, slip=r.slip, slip_std=r.slip_std,
                    dphi=r.dphi, dphi_std=r.dphi_std, quality=quality, t_start=float(cyc.t_start), kS=r.kS,
                    kS_std=r.kS_std, phiS=r.phiS, phiS_std=r.phiS_std, change_prob=r.change_prob, slip_ref=slip_ref,
                    used_reference=bool(r.used_reference), n_samples=int(cyc.n_samples), misfit=r.misfit, noise=noise,
-                   n_repaired=int(n_repaired))
+                   n_repaired=int(n_repaired), discrepancy=r.discrepancy)
 
 
 _NO_ESTIMATE = CycleEstimate.nan()
@@ -307,6 +344,7 @@ class SlipEstimator:
         self._n_flagged: dict[str, int] = {}
         self._n_reference = 0
         self._n_misfit = 0
+        self._n_off_model = 0
         self._n_repaired_cycles = 0  # estimated cycles with samples left out
         self._n_repaired = 0  # samples left out of estimated cycles (missing, unusable, outliers)
         self._n_spikes = 0  # isolated outliers found
@@ -318,8 +356,9 @@ class SlipEstimator:
 
     @property
     def hints(self) -> dict:
-        """What looks wrong with the input, once per kind (``"units"``, ``"degrees"``): a sentence for people
-        naming the likely mistake."""
+        """What looks wrong with the input, once per kind: a sentence for people naming the likely mistake
+        (``"units"``, ``"degrees"``), or saying that the data do not fit the model (``"fit"``, from
+        :func:`fit_advice` as soon as it holds)."""
         return dict(self._hints)
 
     @property
@@ -340,10 +379,13 @@ class SlipEstimator:
     def counters(self) -> dict:
         """``samples``, ``cycles`` (estimates emitted), ``cycles_ok`` (estimated, repaired ones
         included), ``cycles_flagged``,
-        ``flagged_<reason>`` per reason, ``reference_used``, ``cycles_misfit`` (estimated cycles the
-        model did not explain, their intervals widened), ``cycles_repaired`` and ``samples_repaired``
-        (estimated cycles with samples left out, and how many), ``spikes`` (isolated outliers found), ``noise_g`` (the running noise estimate [g]),
-        and the segmenter's counters prefixed ``segmenter_``."""
+        ``flagged_<reason>`` per reason (``flagged_misfit``: not explained at all, not estimated),
+        ``reference_used``, ``cycles_misfit`` (estimated cycles whose features the model did not explain,
+        their intervals widened), ``cycles_off_model`` (cycles off the model: estimated ones with a misfit
+        or a persistent discrepancy, see :func:`off_model`, and those flagged ``misfit``),
+        ``cycles_repaired`` and ``samples_repaired`` (estimated cycles with samples left out, and how many),
+        ``spikes`` (isolated outliers found), ``noise_g`` (the running noise estimate [g]), and the
+        segmenter's counters prefixed ``segmenter_``."""
         c = {
             "samples": self._n_samples,
             "cycles": self._n_estimates,
@@ -351,6 +393,7 @@ class SlipEstimator:
             "cycles_flagged": sum(self._n_flagged.values()),
             "reference_used": self._n_reference,
             "cycles_misfit": self._n_misfit,
+            "cycles_off_model": self._n_off_model,
             "cycles_repaired": self._n_repaired_cycles,
             "samples_repaired": self._n_repaired,
             "spikes": self._n_spikes,
@@ -363,9 +406,11 @@ class SlipEstimator:
         return c
 
     # ------------------------------------------------------------------
-    def _flagged(self, cyc, quality: str, ref: float) -> Estimate:
+    def _flagged(self, cyc, quality: str, ref: float, **known) -> Estimate:
+        """The row of a cycle not estimated, counted by ``quality``; ``known``: what is known of it anyway
+        (:meth:`Estimate.of_cycle`'s ``delta_a``, ``r``, ``noise``)."""
         self._n_flagged[quality] = self._n_flagged.get(quality, 0) + 1
-        return Estimate.of_cycle(cyc, quality, ref)
+        return Estimate.of_cycle(cyc, quality, ref, **known)
 
     def _clean(self, cyc) -> tuple:
         """The cycle's samples to estimate from: ``(t, az, theta_phase, n_repaired)``, without the unusable
@@ -417,16 +462,32 @@ class SlipEstimator:
         self.last_features = f
         use = self.use_reference and math.isfinite(ref)
         r = self.filter.update(f, ref if use else None)
+        if r.misfit > 1.0 and math.isnan(r.slip):  # not explained at all (SoilSlipEstimator.gross_misfit)
+            self._off_model()
+            return self._flagged(cyc, "misfit", ref, delta_a=float(f[_DELTA_A]), r=r, noise=float(f[_NOISE]))
         if r.used_reference:
             self._n_reference += 1
         if r.misfit > 1.0:
             self._n_misfit += 1
+        if off_model(r.misfit, r.discrepancy):
+            self._off_model()
         if repaired:
             self._n_repaired_cycles += 1
             self._n_repaired += repaired
         self._noise_smooth = float(f[_NOISE_SMOOTH])
         return Estimate.of_cycle(cyc, "repaired" if repaired else "ok", ref, float(f[_DELTA_A]), r, float(f[_NOISE]),
                                  repaired)
+
+    def _off_model(self) -> None:
+        """Count the cycle being estimated as off the model (before it is counted as estimated or flagged); the
+        ``"fit"`` hint once :func:`fit_advice` holds."""
+        self._n_off_model += 1
+        if "fit" not in self._hints:
+            # the cycles that reached the estimator so far, this one included
+            n = self._n_estimates - sum(self._n_flagged.values()) + self._n_flagged.get("misfit", 0) + 1
+            advice = fit_advice(n, self._n_off_model)
+            if advice:
+                self._hints["fit"] = advice
 
     def _emit(self, cycles, refs) -> list:
         out = []
@@ -529,4 +590,4 @@ class SlipEstimator:
         yield from self.finish()
 
 
-__all__ = ["Estimate", "ESTIMATE_FIELDS", "METHODS", "SlipEstimator"]
+__all__ = ["Estimate", "ESTIMATE_FIELDS", "METHODS", "SlipEstimator", "fit_advice", "off_model"]

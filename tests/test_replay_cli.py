@@ -61,6 +61,7 @@ def test_csv_to_stdout_one_row_per_cycle(log_path, capsys):
     # summary on stderr only
     assert "leg cycles" in err and f"{N_CYCLES} estimated" in err
     assert "truth" not in err
+    assert "do not fit" not in err and "off the model" not in err  # a clean log fits the model
 
 
 def test_slip_column_ignored_unless_asked(log_path, tmp_path, capsys):
@@ -201,3 +202,23 @@ def test_a_unit_mistake_is_named_and_nothing_is_estimated(log_path, tmp_path, ca
         rc, out, err = run([bad, "--format", "jsonl"], capsys)
         recs = [json.loads(line) for line in out.splitlines()]
         assert rc == 1 and recs and all(r["slip"] is None and r["quality"] == "units" for r in recs)
+
+
+def test_a_log_the_model_cannot_explain_says_so_and_names_calibrate(tmp_path, capsys):
+    """Touchdown impacts the simulator's model does not have: every cycle is flagged misfit (not estimated),
+    the summary says the data do not fit the model and that slipest calibrate would help, and the exit
+    status says nothing was estimated."""
+    sc = Scenario.per_cycle(StickSlipParams(kS=1000.0, phiS=0.55, phiD=0.4), dict(noise_g=0.01, seed=4),
+                            slip=np.repeat([0.1, 0.3, 0.2, 0.4], 2))
+    sc = Scenario(cycles=sc.cycles, rate=sc.rate, noise_g=sc.noise_g, seed=sc.seed,
+                  effects=({"name": "touchdown_impact", "amplitude": -13.2, "tau": 0.9, "freq": 9.6},))
+    s = simulate_stream(sc)
+    path = tmp_path / "impacts.csv"
+    with LogWriter(path, ("t", "az", "theta", "slip"), metadata=sc.metadata()) as w:
+        w.write(s.t, s.az, s.theta, s.slip)
+    rc, out, err = run([path], capsys)
+    rows = list(csv.DictReader(io.StringIO(out)))
+    assert rc == 1 and len(rows) == 8 and all(r["quality"] == "misfit" for r in rows)
+    assert "flagged (misfit 8)" in err
+    assert "the data do not fit the estimator's model (8 of 8 cycles off it)" in err
+    assert "'slipest calibrate'" in err and "the input looks wrong" not in err

@@ -63,7 +63,7 @@ def whiten_into(row, cols, whitener, fw):
 
 
 @numba.njit(cache=True, fastmath=True)
-def grid_loglik(tc, fw, lp, node_width, scale, fit_level, dmat, lc, scratch):
+def grid_loglik(tc, fw, lp, node_width, scale, fit_level, dmat, lc, scratch, floor=1.0):
     """Cell log-likelihoods with the slip marginalised over the table's slip nodes.
 
     ``tc``: ``(D, K, S)`` float32 columnar table; ``fw``: ``(D,)`` float32
@@ -71,13 +71,15 @@ def grid_loglik(tc, fw, lp, node_width, scale, fit_level, dmat, lc, scratch):
     ``node_width``: node spacing [-]; ``scale``: the likelihood's exponent
     (tempering). The smallest squared whitened distance over cells and nodes,
     ``best``, says how well the model explains the cycle: when it exceeds
-    ``fit_level`` (inf: never) the exponent is divided by ``misfit = best /
-    fit_level`` (the likelihood widened by the misfit). Writes ``dmat[k, s] =
-    d(s, k) = -scale |fw - tc[:, k, s]|^2 / (2 misfit) + lp[k]`` (``(K, S)``
-    float32) and ``lc[s] = log(node_width * sum_k exp(d(s, k)))`` (``(S,)``
-    float64), a Riemann sum of the likelihood over slip, the exp by
-    :func:`fexp` relative to the cell's largest term. ``scratch``: ``(2, S)``
-    float32 (the largest term, the sum). Returns ``(best, misfit)``.
+    ``fit_level`` (inf: never) the cycle's ``misfit`` is ``best / fit_level``
+    (else 1). The exponent is divided by ``widen = max(misfit, floor)``
+    (``floor`` >= 1: a widening known from elsewhere, e.g. the recent
+    cycles'; 1: none). Writes ``dmat[k, s] = d(s, k) = -scale |fw - tc[:, k,
+    s]|^2 / (2 widen) + lp[k]`` (``(K, S)`` float32) and ``lc[s] =
+    log(node_width * sum_k exp(d(s, k)))`` (``(S,)`` float64), a Riemann sum
+    of the likelihood over slip, the exp by :func:`fexp` relative to the
+    cell's largest term. ``scratch``: ``(2, S)`` float32 (the largest term,
+    the sum). Returns ``(best, misfit)``.
     """
     D, K, S = tc.shape
     mx = scratch[0]
@@ -97,7 +99,7 @@ def grid_loglik(tc, fw, lp, node_width, scale, fit_level, dmat, lc, scratch):
             if row[s] < best:
                 best = row[s]
     misfit = best / fit_level if best > fit_level else 1.0
-    half = np.float32(-0.5 * scale / misfit)
+    half = np.float32(-0.5 * scale / max(misfit, floor))
     for k in range(K):
         row = dmat[k]
         lk = lp[k]

@@ -40,7 +40,7 @@ import numpy as np
 from slipest.io.device_stream import STUCK_TIME
 from slipest.io.log_csv import LogFormatError, LogReader
 from slipest.io.rosbag import BagTopics
-from slipest.online import SlipEstimator
+from slipest.online import SlipEstimator, fit_advice
 from slipest.offline.logs import KINDS, detect_kind
 
 __all__ = ["TABLE_COLUMNS", "Replay", "ReplayOptions", "ReplayResult", "TruthSummary", "WheelTally", "error_row",
@@ -210,19 +210,17 @@ class ReplayResult:
                 + f"; method {o.method}, {self.legs} legs"
                 + (f", reference slip used on {c.get('reference_used', 0)} cycles" if o.use_reference else "")
                 + (f"; IMU noise {c['noise_g']:.4f} g" if c.get("noise_g", math.nan) == c.get("noise_g") else "")
-                + (f"; {c['cycles_misfit']} estimated cycle(s) the model did not explain (intervals widened)"
-                   if c.get("cycles_misfit") else ""))
+                + (f"; {off} estimated cycle(s) off the model (intervals widened)"
+                   if (off := c.get("cycles_off_model", 0) - c.get("flagged_misfit", 0)) > 0 else ""))
 
     @staticmethod
     def _advice_lines(prefix: str, w: "WheelTally") -> list[str]:
         """What looks wrong with a wheel's data, and a model that does not fit it, for people."""
         c = w.estimator_counters
-        lines = [f"replay: {prefix}the input looks wrong: {text}" for text in w.hints.values()]
-        ok = c.get("cycles_ok", 0)
-        if ok and c.get("cycles_misfit", 0) >= max(3, 0.2 * ok):
-            lines.append(f"replay: {prefix}the model does not explain {c['cycles_misfit']} of {ok} estimated cycles: "
-                         "this rover or soil differs from the simulator (the intervals were widened; "
-                         "docs/estimator.md says what misfit means)")
+        lines = [f"replay: {prefix}the input looks wrong: {text}" for kind, text in w.hints.items() if kind != "fit"]
+        advice = fit_advice(c.get("cycles_ok", 0) + c.get("flagged_misfit", 0), c.get("cycles_off_model", 0))
+        if advice:
+            lines.append(f"replay: {prefix}{advice}")
         if w.cycles and not w.estimated:
             lines.append(f"replay: {prefix}no leg cycle was estimated (the flagged reasons above say why)")
         return lines
