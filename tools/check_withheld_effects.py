@@ -63,11 +63,13 @@ out-of-catalog cases, and the time per diagnosis; writes a PNG of the
 confusion matrix and (``--json``) every case. Progress on stderr: a bar with
 the time left, and one line per case as it ends.
 
-Time: one diagnosis per case and truth (11 truths by default), 2-50 s each
-on 2 cores (2 s when the nominal model explains the data). ``--cases 1``
-took 7 min on 2 cores shared with other work (load average 2.5-4), so
-``--cases 8`` (88 diagnoses) takes about an hour there; ``--quick`` halves
-the optimiser's budget.
+Time: one diagnosis per case and truth (14 truths by default: 8 catalog
+effects, 2 variants, none, 3 out-of-catalog), 2-50 s each on 2 quiet cores
+(2 s when the nominal model explains the data). ``--cases 3`` (42
+diagnoses) took 85 min on 2 cores shared with other work (load average 7-9,
+median 2 min per diagnosis); ``--quick`` halves the optimiser's budget.
+Every case's hidden draws depend only on the seed, the truth and the case
+number, so a subset of truths (``--effects``) reproduces their cases.
 
     python tools/check_withheld_effects.py --cases 4 --seed 1 -o out/check
 """
