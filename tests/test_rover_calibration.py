@@ -311,3 +311,25 @@ def test_a_live_config_file_names_the_rover_file_relative_to_itself(tmp_path):
     args = parse_args(["replay", "log.csv", "--rover", str(path), "--model", "m.npz"])
     with pytest.raises(ValueError, match="--model and --rover are exclusive"):
         model_from_args(args)
+
+
+def test_a_testbed_log_the_shipped_model_cannot_explain_still_gives_its_cycles_to_the_calibration():
+    """Touchdown impacts put every cycle far outside the shipped model (quality "misfit", not estimated); their
+    features are sound, and the calibration (testbed rows and the physics batch) must learn from them."""
+    from dataclasses import replace
+
+    from slipest.online import SlipEstimator
+    from slipest.rover.testbed import TestbedLog, cycle_rows
+
+    slip = np.repeat([0.1, 0.2, 0.3, 0.4], 3)
+    sc = Scenario.per_cycle(StickSlipParams(kS=900.0, phiS=0.55, phiD=0.35),
+                            {"rate": 1000.0, "noise_g": 0.01, "seed": 5}, slip=slip)
+    s = simulate_stream(replace(sc, effects=({"name": "touchdown_impact"},)))
+    est = SlipEstimator(n_legs=4)
+    qualities = [e.quality for e in est.push_many(s.t, s.az, s.theta)] + [e.quality for e in est.finish()]
+    assert qualities.count("misfit") >= 10
+    rows = cycle_rows(s.t, s.az, s.theta, s.slip)
+    assert rows["flagged"] == {} and len(rows["cycle"]) >= 11
+    assert np.all(np.isfinite(rows["features"])) and np.all(np.isnan(rows["slip"]))
+    log = TestbedLog.from_samples("impacts.csv", s.t, s.az, s.theta, s.slip)
+    np.testing.assert_allclose(log.slip, slip[log.cycle])

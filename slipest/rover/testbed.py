@@ -20,9 +20,13 @@ from slipest.features import INDEX
 
 
 def cycle_rows(t, az, theta, slip=None, n_legs: int = 4, model=None) -> dict:
-    """The estimated cycles of a stream: ``cycle`` ``(n,)`` indices, ``features`` ``(n, F)``, ``slip_ref``
-    ``(n,)`` (NaN: none), and the estimator's own ``slip``, ``slip_std`` with ``model`` (default: the shipped
-    surrogate), the soil unknown; ``flagged``: cycles not estimated, by quality."""
+    """The cycles of a stream that reached the estimator: ``cycle`` ``(n,)`` indices, ``features`` ``(n, F)``,
+    ``slip_ref`` ``(n,)`` (NaN: none), and the estimator's own ``slip``, ``slip_std`` with ``model`` (default:
+    the shipped surrogate), the soil unknown; ``flagged``: cycles without features (a fault, a partial cycle),
+    by quality.
+
+    A cycle the model cannot explain at all (quality ``"misfit"``) keeps its row, with ``slip`` and
+    ``slip_std`` NaN: its features are sound, and they are what a calibration must learn from."""
     from slipest.online import SlipEstimator
 
     rows: list = []
@@ -30,7 +34,7 @@ def cycle_rows(t, az, theta, slip=None, n_legs: int = 4, model=None) -> dict:
     est = SlipEstimator(n_legs=n_legs, model=model)
 
     def keep(e):
-        if e.ok:
+        if e.ok or e.quality == "misfit":
             rows.append((e.cycle, est.last_features.copy(), e.slip_ref, e.slip, e.slip_std))
         else:
             flagged[e.quality] = flagged.get(e.quality, 0) + 1
