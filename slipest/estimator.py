@@ -231,7 +231,9 @@ BATCH_FIELDS = ("slip", "slip_std", "dphi", "dphi_std", "kS", "kS_std", "phiS", 
 class SoilSlipEstimator(CycleEstimator):
     """Slip every cycle and the soil as it goes, from feature rows (see the module docstring).
 
-    model: the feature surrogate (default: the shipped one).
+    model: the feature surrogate (default: the shipped one); the standard
+        deviations reported are multiplied by its ``interval_scale`` (1 but
+        for a calibrated rover model).
     soil: what is known of the soil (:class:`~slipest.inverse.base.Soil`,
         any parts); complete: slip is inverted on that soil and it is not
         learnt; partial: the known parts restrict the prior.
@@ -282,6 +284,7 @@ class SoilSlipEstimator(CycleEstimator):
             raise ValueError("soil_temper, slip_temper, forget and repeat_temper must be in (0, 1]")
         self.model = model or load_inverse_model()
         self.model_legs = self.model.n_legs
+        self.interval_scale = float(self.model.interval_scale)
         self.omega_range = self.model.covered_range("omega")
         self.inverse = FeatureInverse(self.model, grid)
         self.grid = self.inverse.grid
@@ -440,7 +443,9 @@ class SoilSlipEstimator(CycleEstimator):
             self.n_reference += 1
         if misfit > 1.0:
             self.n_misfit += 1
-        return CycleEstimate(slip, sd, dm, ds, km, ks, pm, pss, dm2, ds2, change, used, misfit, floor)
+        k = self.interval_scale  # the model's (a calibrated rover's held-out check)
+        return CycleEstimate(slip, sd * k, dm, ds * k, km, ks * k, pm, pss * k, dm2, ds2 * k, change, used, misfit,
+                             floor)
 
     def update_batch(self, features_2d, slip_ref=None) -> dict:
         """:meth:`update` over the rows of ``features_2d`` in order (the recursion is sequential).

@@ -80,6 +80,30 @@ def test_a_zero_correction_gives_the_shipped_estimates():
     np.testing.assert_allclose(a["slip_std"], b["slip_std"], atol=1e-9)
 
 
+
+def test_a_rover_models_interval_scale_widens_every_reported_std_and_nothing_else(tmp_path):
+    """A calibrated rover whose held-out testbed logs said the intervals were 1.7 times too narrow: the same
+    estimates, every standard deviation (slip, soil; the soil-known path too) 1.7 times wider, through its file."""
+    from slipest.estimator import SoilSlipEstimator
+    from slipest.inverse.base import Soil
+    from slipest.inverse.simdata import simulate_features
+
+    m = load_inverse_model()
+    zero = RoverSurrogate.of(m, Discrepancy.zero(m.features, m.center[:4], m.halfwidth[:4]), np.zeros((14, 14)))
+    wide = load_rover(save_rover(replace(zero, interval_scale=1.7), {}, tmp_path / "rover.json"))
+    assert wide.interval_scale == 1.7 and m.interval_scale == 1.0
+    x = np.column_stack([np.linspace(0.05, 0.45, 6), np.full(6, 900.0), np.full(6, 0.5), np.full(6, 0.15),
+                         np.full(6, 0.63)])
+    rows = simulate_features(x, 1000.0, 0.01, np.random.default_rng(4))
+    for soil in (None, Soil(kS=900.0, phiS=0.5, phiD=0.35)):
+        a = SoilSlipEstimator(model=m, soil=soil).update_batch(rows)
+        b = SoilSlipEstimator(model=wide, soil=soil).update_batch(rows)
+        np.testing.assert_allclose(b["slip"], a["slip"], atol=1e-12)
+        for k in ("slip_std", "dphi_std", "kS_std", "phiS_std", "phiD_std"):
+            np.testing.assert_allclose(b[k], 1.7 * a[k], rtol=1e-12, atol=1e-15)
+    with pytest.raises(ValueError, match="interval_scale must be finite and >= 1"):
+        replace(zero, interval_scale=0.5)
+
 def test_fit_recovers_a_discrepancy_in_slip():
     m = load_inverse_model()
     true = _random_discrepancy(m, 2, slip_terms(2))
@@ -192,6 +216,9 @@ def test_calibrate_then_replay_with_the_rover_file_beats_the_shipped_model(rover
     assert "testbed correction in slip" in r.stdout and "IMU: noise 0.01" in r.stdout, r.stdout
     doc = json.loads(out.read_text())
     assert doc["n_legs"] == 4 and doc["report"]["imu"]["noise_g"] == pytest.approx(0.01, rel=0.2)
+    scale = doc["report"]["correction"]["interval_scale"]
+    # 2 logs x 6 held-out cycles scored from the 10th: too few to learn the interval scale, which stays 1
+    assert doc["interval_scale"] == scale["scale"] == 1.0 and scale["n"] == 12
     before = _truth_rmse(_slipest("replay", drive, "--truth", "-o", d / "a.csv").stderr)
     after = _truth_rmse(_slipest("replay", drive, "--truth", "--rover", out, "-o", d / "b.csv").stderr)
     assert after < 0.7 * before, (before, after)
@@ -217,7 +244,7 @@ def test_a_named_effect_gives_a_physics_correction_that_transfers_to_other_soils
     """The simulator with the effect the diagnosis would name, as a feature discrepancy: the testbed logs'
     blind estimates (soil unknown) improve."""
     from slipest.io.log_csv import read_log
-    from slipest.rover.calibrate import Candidate, CalibrateOptions, _build_candidate
+    from slipest.rover.calibrate import Candidate, CalibrateOptions, _build_candidate, _choice_rmse, _slip_spread
     from slipest.rover.fit import blind_score
     from slipest.rover.testbed import TestbedLog
 
@@ -229,8 +256,9 @@ def test_a_named_effect_gives_a_physics_correction_that_transfers_to_other_soils
     base = load_inverse_model()
     cand = Candidate("imu_lowpass", (EFFECT,), 0.3, "test")
     _build_candidate(base, cand, logs, CalibrateOptions(batch=150, blind_start=3), 4, np.random.default_rng(0))
-    shipped = [blind_score(base, lg, 3, 4)["slip_rmse"] for lg in logs]
-    assert cand.slip_rmse < 0.7 * float(np.sqrt(np.mean(np.square(shipped)))), (cand.scores, shipped)
+    shipped = [blind_score(base, lg, 3, 4) for lg in logs]
+    spread = _slip_spread(base)
+    assert cand.choice_rmse(spread) < 0.7 * _choice_rmse(shipped, spread), (cand.scores, shipped)
 
 
 def test_the_demo_estimates_a_rover_with_an_effect_both_ways_side_by_side(tmp_path):
@@ -333,3 +361,38 @@ def test_a_testbed_log_the_shipped_model_cannot_explain_still_gives_its_cycles_t
     assert np.all(np.isfinite(rows["features"])) and np.all(np.isnan(rows["slip"]))
     log = TestbedLog.from_samples("impacts.csv", s.t, s.az, s.theta, s.slip)
     np.testing.assert_allclose(log.slip, slip[log.cycle])
+
+
+def test_a_named_effect_is_chosen_when_the_shipped_model_estimates_no_testbed_cycle():
+    """The shipped model's blind score of testbed logs it cannot explain at all is no estimate (every cycle
+    flagged misfit), not a NaN that no candidate can beat: a cycle not estimated counts as the slip's prior
+    spread, so the named effect, estimating every cycle, is used."""
+    from slipest.rover.calibrate import Candidate, _choice_rmse, _choose
+
+    none = {"slip_rmse": math.nan, "coverage": math.nan, "bias": math.nan, "n": 0, "n_scored": 31}
+    fair = {"slip_rmse": 0.07, "coverage": 1.0, "bias": 0.05, "n": 31, "n_scored": 31}
+    few = {"slip_rmse": 0.02, "coverage": 1.0, "bias": 0.0, "n": 3, "n_scored": 31}
+    spread = 0.55 / math.sqrt(3.0)
+    assert _choice_rmse([none, none], spread) == pytest.approx(spread)
+    named = Candidate("touchdown_impact", ({"name": "touchdown_impact"},), 0.3, "test", named=True, shrink=0.98,
+                      scores=[fair, fair])
+    assert _choose([named], _choice_rmse([none, none], spread), spread) is named
+    # a candidate estimating a tenth of the cycles well does not beat one estimating them all fairly
+    other = Candidate("nominal", (), 0.35, "test", scores=[few, few])
+    assert _choice_rmse([few, few], spread) > _choice_rmse([fair, fair], spread)
+    assert _choose([other], _choice_rmse([fair, fair], spread), spread) is None
+
+
+def test_the_interval_scale_is_what_makes_held_out_errors_covered_at_95_percent_and_never_narrows():
+    from slipest.rover.calibrate import MIN_SCALE_CYCLES, scale_for_coverage
+
+    rng = np.random.default_rng(8)
+    sd = rng.uniform(0.01, 0.03, 4000)
+    wide = scale_for_coverage(rng.normal(0.0, 2.0 * sd), sd)  # intervals twice too narrow
+    assert wide["scale"] == pytest.approx(2.0, rel=0.06) and wide["coverage_before"] == pytest.approx(0.675, abs=0.03)
+    err = rng.normal(0.0, 0.5 * sd)
+    assert scale_for_coverage(err, sd)["scale"] == 1.0  # intervals too wide are kept
+    err[:5] = np.nan  # cycles not estimated are left out
+    assert scale_for_coverage(err, sd)["n"] == 3995
+    few = scale_for_coverage(np.full(MIN_SCALE_CYCLES - 1, 0.3), np.full(MIN_SCALE_CYCLES - 1, 0.01))
+    assert few["scale"] == 1.0 and few["coverage_before"] == 0.0

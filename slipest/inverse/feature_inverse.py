@@ -49,8 +49,9 @@ class FeatureInverse(SlipInverse):
         return float(f[_OMEGA]), float(f[_NOISE_SMOOTH])
 
     def slip_known_soil(self, features, kS, phiS, phiD, scale: float = 1.0) -> tuple[float, float]:
-        """Posterior mean and std of slip [-] on a known soil (fine slip grid); ``scale``: the likelihood's
-        exponent (tempering). NaN when a modelled feature is not finite."""
+        """Posterior mean and std of slip [-] on a known soil (fine slip grid; the std times the model's
+        ``interval_scale``); ``scale``: the likelihood's exponent (tempering). NaN when a modelled feature is
+        not finite."""
         f = self.model.observe(features)
         if not np.all(np.isfinite(f)):
             return math.nan, math.nan
@@ -62,7 +63,8 @@ class FeatureInverse(SlipInverse):
         ri = np.linalg.inv(self.model.cov(omega, sig))
         ll = -0.5 * scale * np.einsum("ij,jk,ik->i", r, ri, r) + self._lp_fine
         p = np.exp(ll - ll.max())
-        return node_moments(p, FINE_SLIP, 0.0025**2 / 12)
+        m, sd = node_moments(p, FINE_SLIP, 0.0025**2 / 12)
+        return m, sd * self.model.interval_scale
 
     def soil_logprior(self, soil: Soil | None) -> np.ndarray:
         """Log prior over the grid cells: uniform, restricted (Gaussian, one grid step wide) to known soil parts."""
@@ -102,7 +104,8 @@ class FeatureInverse(SlipInverse):
         n = select_cells(self.soil_logprior(soil), lc, 20.0, sel, base)
         ps = np.zeros(k)
         marginal_from_rows(dmat, sel, base, n, ps)
-        return node_moments(ps, SLIP_NODES, 0.01**2 / 12)
+        m, sd = node_moments(ps, SLIP_NODES, 0.01**2 / 12)
+        return m, sd * self.model.interval_scale
 
 
 __all__ = ["FINE_SLIP", "FeatureInverse"]

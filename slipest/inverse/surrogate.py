@@ -37,6 +37,7 @@ import itertools
 import json
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 from pathlib import Path
 
 import numpy as np
@@ -158,6 +159,9 @@ class FeatureSurrogate:
     cov_coef: np.ndarray
     covered: dict
     meta: dict
+    #: Factor on the standard deviations the estimator reports with this model (1: its own posterior's; a
+    #: calibrated rover model's is learnt from held-out testbed logs, :class:`slipest.rover.RoverSurrogate`).
+    interval_scale: ClassVar[float] = 1.0
 
     def __post_init__(self):
         d = len(self.features)

@@ -31,7 +31,10 @@ its own unknown soil, and the rover's known hardware
 5. widens the covariance by what the held-out slip levels still scatter
    beyond it (their mean squared whitened residual per feature, each log's
    soil fitted on its other levels);
-6. refits Eq. 5.15 on the runs' ``Da`` and slips on the soils found
+6. scales the estimator's standard deviations so that the blind estimates
+   of held-out runs (each run estimated without what was fitted on it)
+   cover 95 % of their reference slips, never below 1 (:func:`_interval_scale`);
+7. refits Eq. 5.15 on the runs' ``Da`` and slips on the soils found
    (:mod:`slipest.rover.eq515`).
 
 The result (:class:`Calibration`) holds the rover model (a
@@ -54,6 +57,7 @@ from slipest.diagnosis.fit import Geometry
 from slipest.rover.discrepancy import Discrepancy
 from slipest.rover.fit import (
     LogSoil,
+    blind_errors,
     blind_score,
     fit_testbed_discrepancy,
     log_residuals,
@@ -73,6 +77,8 @@ MIN_GAIN = 0.1
 #: The effect the diagnosis named is used unless it raises the testbed runs' blind slip RMSE by more than this
 #: fraction (the waveform gap it shrank is stronger evidence than a few blind estimates of easy testbed cycles).
 MAX_LOSS = 0.25
+#: Held-out testbed cycles needed to learn the rover model's interval scale (fewer: it stays 1).
+MIN_SCALE_CYCLES = 20
 #: A nominal candidate at the diagnosed ``kappa`` is tried when it differs from the model's by more than this.
 KAPPA_TOLERANCE = 0.04
 #: The model's own ``kappa`` (the shipped surrogate was trained with it).
@@ -134,9 +140,9 @@ class Candidate:
     scores: list = field(default_factory=list)
     seconds: float = 0.0
 
-    @property
-    def slip_rmse(self) -> float:
-        return _mean_rmse(self.scores)
+    def choice_rmse(self, spread: float) -> float:
+        """:func:`_choice_rmse` of its blind scores."""
+        return _choice_rmse(self.scores, spread)
 
 
 @dataclass
@@ -162,9 +168,26 @@ def _mean_coverage(scores) -> float:
     return float(np.sum(n[ok] * c[ok]) / np.sum(n[ok])) if ok.any() else math.nan
 
 
+def _choice_rmse(scores, spread: float) -> float:
+    """What the choices compare: the blind slip RMSE over every scored cycle, a cycle the model did not
+    estimate counting as ``spread`` (the slip's prior spread: what is known of a cycle not estimated), so a
+    model that estimates few cycles well does not beat one that estimates them all."""
+    n = np.array([s["n"] for s in scores], dtype=float)
+    r = np.array([s["slip_rmse"] for s in scores], dtype=float)
+    scored = np.array([s["n_scored"] for s in scores], dtype=float)
+    sq = np.where(n > 0, n * np.nan_to_num(r) ** 2, 0.0) + (scored - n) * spread**2
+    return float(np.sqrt(np.sum(sq) / np.sum(scored))) if np.sum(scored) > 0 else math.nan
+
+
+def _slip_spread(model) -> float:
+    """The standard deviation of slip uniform over the model's slip range [-]."""
+    return float(model.halfwidth[0]) / math.sqrt(3.0)
+
+
 def _figures(scores) -> dict:
     return {"slip_rmse": _mean_rmse(scores), "coverage": _mean_coverage(scores),
-            "per_run": [{k: s[k] for k in ("slip_rmse", "coverage", "bias", "n")} for s in scores]}
+            "estimated": float(sum(s["n"] for s in scores) / max(1, sum(s["n_scored"] for s in scores))),
+            "per_run": [{k: s[k] for k in ("slip_rmse", "coverage", "bias", "n", "n_scored")} for s in scores]}
 
 
 def _stage(progress: Progress | None, done: int, total: int, label: str) -> None:
@@ -256,21 +279,22 @@ def _disturbance_candidate(diagnoses, geometry: Geometry, options: CalibrateOpti
     return cand
 
 
-def _choose(cands, shipped_rmse: float):
+def _choose(cands, shipped_rmse: float, spread: float):
     """The candidate to use, or None: the effect the diagnosis named (the one whose fit shrank the held-out gap
     most; a learnt disturbance must leave at most :data:`DISTURBANCE_GAP_RATIO` of the gap an effect leaves),
     unless its blind estimates of the testbed logs are worse than the shipped model's by more than
     :data:`MAX_LOSS`; otherwise a candidate not named (ranked first, or a nominal ``kappa``) whose blind
-    estimates beat the shipped model's by :data:`MIN_GAIN`, the best of them."""
+    estimates beat the shipped model's by :data:`MIN_GAIN`, the best of them. Blind estimates are compared
+    by :func:`_choice_rmse` (``shipped_rmse`` too), ``spread`` standing for a cycle not estimated."""
     def left(c):  # the share of the held-out gap it leaves, a learnt disturbance's counted against an effect's
         return (1.0 - c.shrink) / (DISTURBANCE_GAP_RATIO if c.disturbance is not None else 1.0)
 
     named = sorted((c for c in cands if c.named), key=left)
     for c in named:
-        if c.slip_rmse <= (1.0 + MAX_LOSS) * shipped_rmse:
+        if c.choice_rmse(spread) <= (1.0 + MAX_LOSS) * shipped_rmse:
             return c
-    others = [c for c in cands if not c.named and c.slip_rmse < (1.0 - MIN_GAIN) * shipped_rmse]
-    return min(others, key=lambda c: c.slip_rmse) if others else None
+    others = [c for c in cands if not c.named and c.choice_rmse(spread) < (1.0 - MIN_GAIN) * shipped_rmse]
+    return min(others, key=lambda c: c.choice_rmse(spread)) if others else None
 
 
 def _build_candidate(base, cand: Candidate, logs, options: CalibrateOptions, n_legs: int, rng, runs=()) -> None:
@@ -332,39 +356,62 @@ def _feature_misfit(model, logs, held) -> float:
 def _testbed_layer(model: RoverSurrogate, logs, options: CalibrateOptions, n_legs: int) -> dict:
     """The correction in slip alone: its held-out test (leave one run out, or held-out levels with one run)
     and, when it helps, the fit on every run. Returns ``{"used", "heldout_without", "heldout_with",
-    "discrepancy", "soils"}``."""
-    base_scores, with_scores = [], []
+    "discrepancy", "soils", "heldout"}``; ``heldout``: per run, the correction fitted without it (or without
+    its held-out levels) and the cycles it is scored on (None: from ``blind_start``; else a boolean mask)."""
+    base_scores, with_scores, heldout = [], [], []
     if len(logs) >= 2:
         for j, lg in enumerate(logs):
             others = [o for k, o in enumerate(logs) if k != j]
             extra, _ = fit_testbed_discrepancy(model, others, options.testbed_degree)
-            base_scores.append(blind_score(model, lg, options.blind_start, n_legs))
-            with_scores.append(blind_score(with_discrepancy(model, extra), lg, options.blind_start, n_legs))
+            heldout.append((extra, None))
         how = "leave one run out"
     else:
         held, train = _heldout_split(logs)
         extra, _ = fit_testbed_discrepancy(model, train, options.testbed_degree)
-        base_scores = [_masked_blind(model, logs[0], held[0], n_legs)]
-        with_scores = [_masked_blind(with_discrepancy(model, extra), logs[0], held[0], n_legs)]
+        heldout.append((extra, held[0]))
         how = "held-out slip levels"
-    before, after = _mean_rmse(base_scores), _mean_rmse(with_scores)
+    for lg, (extra, mask) in zip(logs, heldout):
+        base_scores.append(blind_score(model, lg, options.blind_start, n_legs, mask))
+        with_scores.append(blind_score(with_discrepancy(model, extra), lg, options.blind_start, n_legs, mask))
+    spread = _slip_spread(model)
+    before, after = _choice_rmse(base_scores, spread), _choice_rmse(with_scores, spread)
     used = bool(after < (1.0 - 0.5 * MIN_GAIN) * before)
     extra, soils = fit_testbed_discrepancy(model, logs, options.testbed_degree)
     return {"used": used, "how": how, "heldout_without": _figures(base_scores), "heldout_with": _figures(with_scores),
-            "discrepancy": extra, "soils": soils}
+            "discrepancy": extra, "soils": soils, "heldout": heldout}
 
 
-def _masked_blind(model, log: TestbedLog, mask, n_legs: int) -> dict:
-    """Blind estimates over the whole log, scored on the ``mask`` cycles only."""
-    from slipest.estimator import SoilSlipEstimator
+def _interval_scale(model: RoverSurrogate, layer: dict, widen: np.ndarray, logs, options: CalibrateOptions,
+                    n_legs: int) -> dict:
+    """The factor on the estimator's standard deviations that makes the blind estimates of held-out testbed
+    runs cover 95 % of their reference slips (at least 1: intervals are widened, never narrowed).
 
-    out = SoilSlipEstimator(model=model, n_legs=n_legs).update_batch(log.features)
-    err = (out["slip"] - log.slip)[mask]
-    sd = out["slip_std"][mask]
-    ok = np.isfinite(err)
-    return {"slip_rmse": float(np.sqrt(np.mean(err[ok] ** 2))) if ok.any() else math.nan,
-            "coverage": float(np.mean(np.abs(err[ok]) <= 1.96 * sd[ok])) if ok.any() else math.nan,
-            "bias": float(np.mean(err[ok])) if ok.any() else math.nan, "n": int(ok.sum())}
+    Each run is estimated by the final model with the parts fitted on it left out: ``model`` (the model
+    before the testbed correction), plus the correction fitted without the run when it is used, plus the
+    covariance widening ``widen``. The factor is the 95th percentile of ``|err| / (1.96 std)`` over their
+    estimated cycles (:func:`scale_for_coverage`). Returns ``{"scale", "coverage_before", "n"}`` (the
+    held-out coverage without the factor)."""
+    errs, sds = [], []
+    for lg, (extra, mask) in zip(logs, layer["heldout"]):
+        m = with_discrepancy(model, extra) if layer["used"] else model
+        m = replace(m, extra_cov=m.extra_cov + widen)
+        err, sd = blind_errors(m, lg, options.blind_start, n_legs, mask)
+        errs.append(err)
+        sds.append(sd)
+    return scale_for_coverage(np.concatenate(errs), np.concatenate(sds))
+
+
+def scale_for_coverage(err, sd) -> dict:
+    """The factor (at least 1) on the standard deviations ``sd`` for which ``+-1.96 sd`` covers 95 % of the
+    errors ``err`` (the 95th percentile of ``|err| / (1.96 sd)``; cycles with a NaN error or no std are left
+    out; 1 with fewer than :data:`MIN_SCALE_CYCLES` of them). Returns ``{"scale", "coverage_before", "n"}``:
+    ``coverage_before`` the share covered without the factor."""
+    err, sd = np.asarray(err, dtype=float), np.asarray(sd, dtype=float)
+    ok = np.isfinite(err) & np.isfinite(sd) & (sd > 0)
+    z = np.abs(err[ok]) / (1.96 * sd[ok])
+    covered = float(np.mean(z <= 1.0)) if z.size else math.nan
+    scale = max(1.0, float(np.quantile(z, 0.95))) if z.size >= MIN_SCALE_CYCLES else 1.0
+    return {"scale": scale, "coverage_before": covered, "n": int(z.size)}
 
 
 def _diagnosis_summary(run, d) -> dict:
@@ -415,13 +462,15 @@ def calibrate(runs, geometry: Geometry = Geometry(), options: CalibrateOptions =
         if extra is not None:
             _build_candidate(base, extra, logs, options, n_legs, rng, runs)
             cands.append(extra)
-    chosen = _choose(cands, _mean_rmse(before_scores))
+    spread = _slip_spread(base)
+    chosen = _choose(cands, _choice_rmse(before_scores, spread), spread)
     _stage(progress, len(cands), len(cands), "candidates")
     model = shipped if chosen is None else chosen.model
     if chosen is not None and chosen.logs is not None:
         logs = chosen.logs  # the features the rover model sees: through its sample correction
     _stage(progress, 0, 1, "testbed correction (leave one run out)")
     layer = _testbed_layer(model, logs, options, n_legs)
+    before_layer = model
     if layer["used"]:
         model = with_discrepancy(model, layer["discrepancy"])
     soils = [log_soil(model, lg) for lg in logs]
@@ -429,10 +478,11 @@ def calibrate(runs, geometry: Geometry = Geometry(), options: CalibrateOptions =
     factor = max(1.0, _feature_misfit(model, logs, held))
     noise_smooth = float(np.median([lg.noise_smooth for lg in logs]))
     omega = float(np.median([lg.omega for lg in logs]))
-    if factor > 1.0:
-        r = model.cov(omega, noise_smooth)
-        model = replace(model, extra_cov=model.extra_cov + (factor - 1.0) * r)
+    widen = (factor - 1.0) * model.cov(omega, noise_smooth)
+    model = replace(model, extra_cov=model.extra_cov + widen)
     misfit_after = _feature_misfit(model, logs, held)
+    intervals = _interval_scale(before_layer, layer, widen, logs, options, n_legs)
+    model = replace(model, interval_scale=intervals["scale"])
     after_scores = [blind_score(model, lg, options.blind_start, n_legs) for lg in logs]
     _stage(progress, 1, 1, "done")
     eq515 = refit_eq515(logs, soils, omega, n_legs)
@@ -454,6 +504,7 @@ def calibrate(runs, geometry: Geometry = Geometry(), options: CalibrateOptions =
                                                    "disturbance": chosen.disturbance},
             "testbed": {k: layer[k] for k in ("used", "how", "heldout_without", "heldout_with")},
             "covariance_factor": factor,
+            "interval_scale": intervals,
         },
         "before": {"blind": _figures(before_scores), "feature_misfit": misfit_before},
         "after": {"blind": _figures(after_scores), "feature_misfit": misfit_after},
@@ -475,5 +526,5 @@ def _unexplained(model, logs, soils: list[LogSoil], report: dict) -> dict:
             "largest_feature_bias": [{"feature": model.features[j], "bias_sd": float(bias[j])} for j in order[:3]]}
 
 
-__all__ = ["CalibrateOptions", "Calibration", "Candidate", "MIN_GAIN", "Progress", "TestbedRun", "calibrate",
+__all__ = ["CalibrateOptions", "Calibration", "Candidate", "MIN_GAIN", "Progress", "TestbedRun", "calibrate", "scale_for_coverage",
            "diagnose_runs"]

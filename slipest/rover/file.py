@@ -17,6 +17,7 @@ naming the file and what is wrong. Layout (units SI, features in
     extra_cov       (d, d) extra covariance of the features
     eq515           the refitted Eq. 5.15 calibration ({"eq515": {...}, "model": {"params": {"nL", "omega"}}})
     disturbance     null, or the phase-locked az disturbance removed from the samples ({"phase": [rad], "az": [m/s^2]})
+    interval_scale  factor (>= 1) on the estimator's standard deviations (absent: 1)
     report          what the calibration found (slipest.rover.calibrate.Calibration.report)
 """
 
@@ -74,6 +75,7 @@ def rover_document(model: RoverSurrogate, report: dict, created_by: str, base_pa
         "extra_cov": np.asarray(model.extra_cov).tolist(),
         "eq515": model.eq515,
         "disturbance": model.disturbance,
+        "interval_scale": float(model.interval_scale),
         "report": report,
     }
 
@@ -141,7 +143,8 @@ def load_rover(path, n_legs: int | None = None, base=None) -> RoverSurrogate:
     try:
         disc = Discrepancy.from_dict(doc["discrepancy"])
         model = RoverSurrogate.of(base, disc, np.asarray(doc["extra_cov"], dtype=float), rover_legs=legs,
-                                  eq515=doc["eq515"], source=source, disturbance=doc.get("disturbance"))
+                                  eq515=doc["eq515"], source=source, disturbance=doc.get("disturbance"),
+                                  interval_scale=float(doc.get("interval_scale", 1.0)))
     except (KeyError, TypeError, ValueError) as exc:
         raise RoverFileError(f"{source}: malformed rover model ({exc})") from None
     if base.n_legs != legs:

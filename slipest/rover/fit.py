@@ -122,21 +122,32 @@ def with_discrepancy(model, extra: Discrepancy):
     return RoverSurrogate.of(model, extra, np.zeros((len(model.features),) * 2), rover_legs=model.n_legs)
 
 
-def blind_score(model, log: TestbedLog, start: int = 9, n_legs: int | None = None) -> dict:
+def blind_errors(model, log: TestbedLog, start: int = 9, n_legs: int | None = None, mask=None):
     """The estimator with ``model`` over the log's cycles in order, soil unknown and the reference ignored:
-    ``slip_rmse`` [-], ``coverage`` (share within 1.96 std) and ``bias`` from the ``start``-th cycle, ``n``."""
+    ``(err, sd)`` of slip [-] (estimate minus reference, and the reported std) for the cycles scored, from the
+    ``start``-th (or the ``mask`` cycles, boolean ``(n,)``, when given); NaN where a cycle was not estimated
+    (a cycle the model cannot explain at all: ``SoilSlipEstimator.gross_misfit``)."""
     from slipest.estimator import SoilSlipEstimator
 
     est = SoilSlipEstimator(model=model, n_legs=n_legs or model.n_legs)
     out = est.update_batch(log.features)
-    err = (out["slip"] - log.slip)[start:]
-    sd = out["slip_std"][start:]
+    sel = np.arange(len(log)) >= start if mask is None else np.asarray(mask, dtype=bool)
+    return (out["slip"] - log.slip)[sel], out["slip_std"][sel]
+
+
+def blind_score(model, log: TestbedLog, start: int = 9, n_legs: int | None = None, mask=None) -> dict:
+    """The estimator with ``model`` over the log's cycles in order, soil unknown and the reference ignored,
+    scored from the ``start``-th cycle (or on the ``mask`` cycles, boolean ``(n,)``, when given):
+    ``slip_rmse`` [-], ``coverage`` (share within 1.96 std) and ``bias`` of the cycles it estimated, ``n``
+    of them, and ``n_scored``: the cycles scored, estimated or not (a cycle the model cannot explain at all
+    is not estimated: :func:`blind_errors`)."""
+    err, sd = blind_errors(model, log, start, n_legs, mask)
     ok = np.isfinite(err)
     if not ok.any():
-        return {"slip_rmse": math.nan, "coverage": math.nan, "bias": math.nan, "n": 0}
+        return {"slip_rmse": math.nan, "coverage": math.nan, "bias": math.nan, "n": 0, "n_scored": int(err.size)}
     return {"slip_rmse": float(np.sqrt(np.mean(err[ok] ** 2))), "coverage": float(np.mean(np.abs(err[ok]) <= 1.96 * sd[ok])),
-            "bias": float(np.mean(err[ok])), "n": int(ok.sum())}
+            "bias": float(np.mean(err[ok])), "n": int(ok.sum()), "n_scored": int(err.size)}
 
 
-__all__ = ["LogSoil", "SLIP_ROUND", "blind_score", "fit_testbed_discrepancy", "log_points",
+__all__ = ["LogSoil", "SLIP_ROUND", "blind_errors", "blind_score", "fit_testbed_discrepancy", "log_points",
            "log_residuals", "log_soil", "whitened_sq", "with_discrepancy"]

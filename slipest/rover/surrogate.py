@@ -17,13 +17,16 @@ or None; :attr:`sample_correction` removes it from a cycle's samples before
 their features are computed (:class:`slipest.online.SlipEstimator` applies it). ``eq515``: the Eq. 5.15 calibration refitted
 on the same testbed logs (a calibration dict as
 :meth:`slipest.inverse.eq515.Eq515Tracker.from_calibration` reads it), or
-None. ``source``: where the rover model came from (its file), for messages.
+None. ``interval_scale`` (>= 1): the factor on the estimator's standard
+deviations that made the blind estimates of held-out testbed logs cover
+95 % of their slips (1: they did without). ``source``: where the rover model came from (its file), for messages.
 Made by :func:`slipest.rover.calibrate.calibrate`, read by
 :func:`slipest.rover.file.load_rover`.
 """
 
 from __future__ import annotations
 
+import math
 from collections import OrderedDict
 from dataclasses import dataclass, fields
 
@@ -65,10 +68,13 @@ class RoverSurrogate(FeatureSurrogate):
     eq515: dict | None = None
     source: str = "rover model"
     disturbance: dict | None = None
+    interval_scale: float = 1.0
 
     def __post_init__(self):
         super().__post_init__()
         d = len(self.features)
+        if not (math.isfinite(self.interval_scale) and self.interval_scale >= 1.0):
+            raise ValueError(f"{self.source}: interval_scale must be finite and >= 1, got {self.interval_scale}")
         if self.discrepancy is None or tuple(self.discrepancy.features) != tuple(self.features):
             raise ValueError(f"{self.source}: the discrepancy must be over the model's features {list(self.features)}")
         q = np.asarray(self.extra_cov, dtype=float)
