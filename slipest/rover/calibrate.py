@@ -526,5 +526,5 @@ def _unexplained(model, logs, soils: list[LogSoil], report: dict) -> dict:
             "largest_feature_bias": [{"feature": model.features[j], "bias_sd": float(bias[j])} for j in order[:3]]}
 
 
-__all__ = ["CalibrateOptions", "Calibration", "Candidate", "MIN_GAIN", "Progress", "TestbedRun", "calibrate", "scale_for_coverage",
-           "diagnose_runs"]
+__all__ = ["CalibrateOptions", "Calibration", "Candidate", "MIN_GAIN", "Progress", "TestbedRun", "calibrate",
+           "diagnose_runs", "scale_for_coverage"]
