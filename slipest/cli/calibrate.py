@@ -21,8 +21,8 @@ file (JSON) that the estimator takes with --rover:
 Progress goes to stderr, the report to stdout: the effects named, the
 estimates of the testbed logs before and after (blind: soil unknown,
 reference ignored), the held-out feature misfit, what is left unexplained.
-Two 40-cycle logs take about 2-4 minutes on 2 cores (the diagnosis is most
-of it; --thorough doubles its budget). docs/calibration.md: the design.
+Two 40-cycle logs take about 30-70 s on 2 quiet cores (the diagnosis and the
+simulated batch are most of it; --thorough doubles the diagnosis budget). docs/calibration.md: the design.
 """
 
 from __future__ import annotations
