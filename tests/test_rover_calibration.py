@@ -396,3 +396,38 @@ def test_the_interval_scale_is_what_makes_held_out_errors_covered_at_95_percent_
     assert scale_for_coverage(err, sd)["n"] == 3995
     few = scale_for_coverage(np.full(MIN_SCALE_CYCLES - 1, 0.3), np.full(MIN_SCALE_CYCLES - 1, 0.01))
     assert few["scale"] == 1.0 and few["coverage_before"] == 0.0
+
+
+def test_an_additive_effects_waveform_is_what_the_simulator_adds_and_other_effects_have_none():
+    """A touchdown impact adds to az what does not depend on az: its table over the leg phase, removed from a
+    simulated stream with it, leaves the stream without it (but the sample on each touchdown's jump); filters,
+    clips, angle and physics effects are not additive: no table."""
+    from slipest.rover.waveform import effect_disturbance, phase_correction
+
+    spec = {"name": "touchdown_impact", "amplitude": 12.0, "tau": 0.9, "freq": 11.0, "onset": 0.4}
+    sc = Scenario.per_cycle(StickSlipParams(kS=900.0, phiS=0.55, phiD=0.35),
+                            {"rate": 1000.0, "noise_g": 0.0, "seed": 3}, slip=np.full(25, 0.2))
+    clean, hit = simulate_stream(sc), simulate_stream(replace(sc, effects=(spec,)))
+    phases, values = effect_disturbance([spec], 0.63, 4)
+    phase = np.mod(hit.theta + math.pi / 4, math.pi / 2) - math.pi / 4
+    left = phase_correction(phases, values, 4, phase, hit.az) - clean.az
+    late = (hit.t > hit.t[-1] - 5.0) & (math.pi / 4 - np.abs(phase) > 0.002)  # the train built up; off the jump
+    assert np.max(np.abs(hit.az - clean.az)[late]) > 5.0
+    assert np.std(left[late]) < 0.01 and np.max(np.abs(left[late] - np.mean(left[late]))) < 0.05
+    for other in ({"name": "imu_lowpass"}, {"name": "imu_saturation", "full_scale": 12.0}, {"name": "angle_offset"},
+                  {"name": "contact_damping"}, {"name": "time_skew"}):
+        assert effect_disturbance([other], 0.63, 4) is None, other
+
+
+def test_an_additive_effect_named_by_the_diagnosis_is_also_tried_removed_from_the_samples():
+    from slipest.rover.calibrate import Candidate, _removal_candidates
+
+    class Log:
+        omega = 0.63
+
+    impact = Candidate("touchdown_impact", ({"name": "touchdown_impact", "amplitude": 9.0},), 0.3, "named in a",
+                       named=True, shrink=0.98)
+    lowpass = Candidate("imu_lowpass", ({"name": "imu_lowpass"},), 0.3, "named in b", named=True, shrink=0.99)
+    (removed,) = _removal_candidates([impact, lowpass], [Log(), Log()], 4)
+    assert removed.named and removed.shrink == 0.98 and removed.effects == impact.effects and not removed.learnt
+    assert len(removed.disturbance["phase"]) == len(removed.disturbance["az"]) >= 1000

@@ -19,6 +19,9 @@ its own unknown soil, and the rover's known hardware
    estimates of the testbed runs (soil unknown, reference ignored, as on a
    drive) get worse by more than :data:`MAX_LOSS`, else an effect it did not
    name if those beat the shipped model's by :data:`MIN_GAIN` (:func:`_choose`).
+   An effect that only adds to ``az`` (a touchdown impact) is also tried
+   removed from the samples (its waveform over the leg phase at the
+   testbed's speed); the blind estimates choose between the two forms.
    When no named effect explains a log well (shrink below
    :data:`WELL_EXPLAINED`), a phase-locked ``az`` disturbance learnt from the
    logs' waveforms (:mod:`slipest.rover.waveform`) is a candidate too, as if
@@ -135,6 +138,7 @@ class Candidate:
     named: bool = False
     shrink: float = 0.0
     disturbance: dict | None = None
+    learnt: bool = False
     model: object = None
     logs: list | None = None
     scores: list = field(default_factory=list)
@@ -250,6 +254,25 @@ def _effect_candidates(diagnoses, runs) -> list[Candidate]:
     return out
 
 
+def _removal_candidates(cands, logs, n_legs: int) -> list[Candidate]:
+    """For each effect candidate that only adds to ``az`` (:func:`slipest.rover.waveform.effect_disturbance`:
+    a touchdown impact), the same effect removed from the samples at the testbed's leg speed instead of
+    modelled as a feature discrepancy: as named as the effect, with its shrink."""
+    from slipest.rover.waveform import effect_disturbance
+
+    omega = float(np.median([lg.omega for lg in logs]))
+    out = []
+    for c in cands:
+        if c.disturbance is not None or not c.effects:
+            continue
+        wave = effect_disturbance(c.effects, omega, n_legs)
+        if wave is None:
+            continue
+        out.append(Candidate(f"{c.label} removed", c.effects, c.kappa, f"{c.origin}; removed from the samples",
+                             c.named, c.shrink, disturbance={"phase": wave[0].tolist(), "az": wave[1].tolist()}))
+    return out
+
+
 def _disturbance_candidate(diagnoses, geometry: Geometry, options: CalibrateOptions, progress: Progress | None,
                            runs, base, n_legs: int) -> Candidate | None:
     """A phase-locked ``az`` disturbance learnt from each diagnosed log's training cycles (their mean,
@@ -273,7 +296,7 @@ def _disturbance_candidate(diagnoses, geometry: Geometry, options: CalibrateOpti
     rms = float(np.sqrt(np.mean(wave**2))) / 9.81 * 1000
     cand = Candidate("learnt disturbance", (), float(np.median([x.kappa for x in learnt])),
                      f"the logs' mean residual waveform (RMS {rms:.0f} mg), held-out gap shrink {shrink:.0%}",
-                     named=shrink >= DISTURBANCE_SHRINK, shrink=shrink)
+                     named=shrink >= DISTURBANCE_SHRINK, shrink=shrink, learnt=True)
     cand.disturbance = {"phase": learnt[0].phases.tolist(), "az": wave.tolist(),
                         "heldout_gap_g": [[x.gap_nominal, x.gap_after] for x in learnt]}
     return cand
@@ -287,9 +310,11 @@ def _choose(cands, shipped_rmse: float, spread: float):
     estimates beat the shipped model's by :data:`MIN_GAIN`, the best of them. Blind estimates are compared
     by :func:`_choice_rmse` (``shipped_rmse`` too), ``spread`` standing for a cycle not estimated."""
     def left(c):  # the share of the held-out gap it leaves, a learnt disturbance's counted against an effect's
-        return (1.0 - c.shrink) / (DISTURBANCE_GAP_RATIO if c.disturbance is not None else 1.0)
+        return (1.0 - c.shrink) / (DISTURBANCE_GAP_RATIO if c.learnt else 1.0)
 
-    named = sorted((c for c in cands if c.named), key=left)
+    # an effect as a feature discrepancy and removed from the samples leave the same gap: the blind estimates
+    # of the testbed logs decide between them
+    named = sorted((c for c in cands if c.named), key=lambda c: (left(c), c.choice_rmse(spread)))
     for c in named:
         if c.choice_rmse(spread) <= (1.0 + MAX_LOSS) * shipped_rmse:
             return c
@@ -454,9 +479,12 @@ def calibrate(runs, geometry: Geometry = Geometry(), options: CalibrateOptions =
 
     diagnoses = diagnose_runs(runs, geometry, options, progress) if options.diagnose else [None] * len(runs)
     cands = _effect_candidates(diagnoses, runs) if options.diagnose else []
+    cands += _removal_candidates(cands, logs, n_legs)
     for k, cand in enumerate(cands):
-        _stage(progress, k, len(cands), f"simulating {cand.label} ({options.batch} cycles)")
-        _build_candidate(base, cand, logs, options, n_legs, rng)
+        label = (f"features with {cand.label} from the samples" if cand.disturbance is not None
+                 else f"simulating {cand.label} ({options.batch} cycles)")
+        _stage(progress, k, len(cands), label)
+        _build_candidate(base, cand, logs, options, n_legs, rng, runs)
     if options.diagnose and not any(c.named and c.shrink >= WELL_EXPLAINED for c in cands):
         extra = _disturbance_candidate(diagnoses, geometry, options, progress, runs, base, n_legs)
         if extra is not None:

@@ -59,6 +59,10 @@ def report_lines(report: dict) -> list[str]:
     if eff is None:
         tried = ", ".join(f"{c['label']} ({_blind(c['blind'])})" for c in report["candidates"]) or "none"
         out.append(f"correction: no catalog effect used (tried: {tried})")
+    elif eff.get("disturbance") and eff["effects"]:
+        what = "; ".join(f"{e['name']} ({_params(e)})" for e in eff["effects"])
+        out.append(f"correction: {what} removed from the samples before their features are computed, as its "
+                   f"waveform over the leg phase at the testbed's leg speed ({eff['origin']})")
     elif eff.get("disturbance"):
         out.append("correction: a disturbance locked to the leg phase, removed from the samples before their "
                    f"features are computed ({eff['origin']}; no catalog effect explained the logs as well)")

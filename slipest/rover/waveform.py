@@ -20,6 +20,12 @@ say whether it explains the log: their gap (:mod:`slipest.diagnosis.rank`)
 with the disturbance removed and the refitted model, against the nominal
 model's, as the diagnosis judges a catalog effect.
 
+:func:`effect_disturbance` gives the same kind of disturbance from a
+catalog effect the diagnosis fitted, when that effect adds to ``az``
+something that does not depend on ``az`` (a touchdown impact): its
+steady-state waveform over a leg cycle at the testbed's leg speed, exact
+where a learnt mean is noisy.
+
 Units: phase [rad] (``[-pi/nL, pi/nL)``), disturbance [m/s^2], gaps [g].
 """
 
@@ -52,6 +58,53 @@ def phase_correction(phases, values, n_legs: int, theta_phase, az) -> np.ndarray
     """``az`` [m/s^2] minus the disturbance ``values`` [m/s^2] at ``phases`` [rad], interpolated periodically
     (period ``2 pi / nL``) at each sample's leg phase ``theta_phase`` [rad]."""
     return np.asarray(az, dtype=float) - np.interp(theta_phase, phases, values, period=2.0 * math.pi / n_legs)
+
+
+#: Phases of an effect's disturbance table per leg cycle (:func:`effect_disturbance`).
+EFFECT_PHASES = 4000
+#: An effect's disturbance is built after this long at steady speed [s] (its train of transients builds up;
+#: the catalog impact's longest fitted decay, 8 s, is then steady to 0.2 %).
+EFFECT_SETTLE_S = 50.0
+
+
+def effect_disturbance(specs, omega: float, n_legs: int, rate: float = 20000.0):
+    """The ``az`` [m/s^2] the catalog effects ``specs`` (``{"name": ..., params}``) add at steady leg speed
+    ``omega`` [rad/s], as ``(phases (EFFECT_PHASES,) [rad], values (EFFECT_PHASES,) [m/s^2], zero mean)``
+    over a leg cycle of ``n_legs`` legs, sampled at ``rate`` [Hz]; None when they do not just add to ``az``
+    (a physics effect, a filter, a clip, a change of the angle or the time: their output minus their input
+    depends on the input, or they add nothing)."""
+    from slipest.model.effects import EFFECTS, compile_effects
+    from slipest.model.params import StickSlipParams
+
+    if not specs or any(EFFECTS[s["name"]].kind == "physics" for s in specs):
+        return None
+    step = 2.0 * math.pi / n_legs
+    period = step / omega
+    t = np.arange(0.0, EFFECT_SETTLE_S + 1.5 * period, 1.0 / rate)
+    theta = -math.pi / n_legs + omega * t
+    rng = np.random.default_rng(0)
+    probe = rng.normal(0.0, 5.0, t.size)
+
+    def added(az):
+        transform, stages = compile_effects(specs)
+        transform(StickSlipParams(nL=n_legs, omega=omega))
+        out, th = az.copy(), theta.copy()
+        for st in stages:
+            out, th = st.apply(t, out, th, np.random.default_rng(1))
+        return out - az, th
+
+    zero, th0 = added(np.zeros_like(t))
+    moved, th1 = added(probe)
+    scale = float(np.max(np.abs(zero)))
+    if scale < 1e-6 or not np.allclose(moved, zero, rtol=1e-9, atol=1e-9 * max(1.0, scale)) \
+            or not np.array_equal(th0, theta):
+        return None
+    last = t >= t[-1] - period  # the last whole cycle, the train built up
+    phase = np.mod(theta[last] + math.pi / n_legs, step) - math.pi / n_legs
+    order = np.argsort(phase)
+    phases = -math.pi / n_legs + (np.arange(EFFECT_PHASES) + 0.5) * step / EFFECT_PHASES
+    values = np.interp(phases, phase[order], zero[last][order], period=step)
+    return phases, values - np.mean(values)
 
 
 def learn_disturbance(diagnosis, geometry, iterations: int = 2, seed: int = 0, budget=None) -> LearntDisturbance:
