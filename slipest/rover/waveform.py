@@ -94,7 +94,7 @@ def effect_disturbance(specs, omega: float, n_legs: int, rate: float = 20000.0):
         return out - az, th
 
     zero, th0 = added(np.zeros_like(t))
-    moved, th1 = added(probe)
+    moved, _ = added(probe)
     scale = float(np.max(np.abs(zero)))
     if scale < 1e-6 or not np.allclose(moved, zero, rtol=1e-9, atol=1e-9 * max(1.0, scale)) \
             or not np.array_equal(th0, theta):
