@@ -158,8 +158,8 @@ def _cycle_step(w, prior, hazard, soil_temper, repeat_temper, moments, forget, c
     ``f64s`` ``(2, S)`` float64, ``sel`` ``(S,)`` int64, ``ps`` ``(K,)`` float64.
     """
     S = w.size
-    lc = f64s[0]  # cell log-likelihoods
-    lw = f64s[1]  # log weights after predict, then the update's log-likelihoods
+    lc = f64s[0]  # cell log-likelihoods, then the update's
+    lw = f64s[1]  # log weights after predict
     best, misfit = grid_loglik(table, fw, lp, node_width, scale, fit_level, dmat, lc, f32s[:2], floor)
     top = -np.inf
     for s in range(S):
@@ -193,7 +193,7 @@ def _cycle_step(w, prior, hazard, soil_temper, repeat_temper, moments, forget, c
         if ref_k >= 0:  # the slip is given: nothing for repeated slips to confound
             temper = soil_temper
     if not skip:
-        ll = lw  # reused: the log weights are not needed any more
+        ll = lc  # the update's log-likelihoods (the cell log-likelihoods are not needed any more)
         if ref_k >= 0:
             l0 = lp[ref_k]
             l1 = lp[ref_k + 1]
@@ -201,16 +201,13 @@ def _cycle_step(w, prior, hazard, soil_temper, repeat_temper, moments, forget, c
             r1 = dmat[ref_k + 1]
             for s in range(S):
                 ll[s] = (1.0 - ref_a) * (r0[s] - l0) + ref_a * (r1[s] - l1)
-        else:
-            for s in range(S):
-                ll[s] = lc[s]
         mx = -np.inf
         for s in range(S):
             if ll[s] > mx:
                 mx = ll[s]
         top = -np.inf  # w^forget * L^temper, in logs (the weights span hundreds of decades)
-        for s in range(S):
-            v = forget * math.log(w[s]) + temper * (ll[s] - mx) if w[s] > 0.0 else -np.inf
+        for s in range(S):  # lw[s] = log(w[s]) when w[s] > 0 (the predict step's)
+            v = forget * lw[s] + temper * (ll[s] - mx) if w[s] > 0.0 else -np.inf
             ll[s] = v
             if v > top:
                 top = v
