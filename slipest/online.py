@@ -57,6 +57,7 @@ alike.
 from __future__ import annotations
 
 import math
+import statistics
 from collections import deque
 from dataclasses import asdict, dataclass, fields
 from typing import Callable, Iterable, Iterator
@@ -367,7 +368,7 @@ class SlipEstimator:
         median of the last cycles' measures; NaN before the first)."""
         if self.noise is not None:
             return self.noise
-        return float(np.median(self._noises)) if self._noises else math.nan
+        return float(statistics.median(self._noises)) if self._noises else math.nan  # numpy's value, 40 us less
 
     def reset(self) -> None:
         """Forget the stream and everything learnt (segmenter, soil filter, counters)."""
