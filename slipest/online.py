@@ -62,6 +62,7 @@ from collections import deque
 from dataclasses import asdict, dataclass, fields
 from typing import Callable, Iterable, Iterator
 
+import numba
 import numpy as np
 
 from slipest.cycle_estimator import CycleEstimate
@@ -80,14 +81,21 @@ NOISE_CYCLES = 9
 _DELTA_A, _NOISE, _NOISE_SMOOTH = INDEX["delta_a"], INDEX["noise"], INDEX["noise_smooth"]
 
 
-def _window_speed(t, theta_phase, half: float) -> float:
-    """Mean leg speed [rad/s] over the samples with phase in ``[0, half]`` (NaN when fewer than two)."""
-    inside = np.flatnonzero((theta_phase >= 0.0) & (theta_phase <= half))
-    if inside.size < 2:
+@numba.njit(cache=True)
+def _window_speed(t, theta_phase, half):
+    """Mean leg speed [rad/s] over the samples with phase in ``[0, half]`` (NaN when fewer than two): the phase
+    travelled from the first such sample to the last over the time between them."""
+    n = theta_phase.size
+    i0 = 0
+    while i0 < n and not (0.0 <= theta_phase[i0] <= half):
+        i0 += 1
+    i1 = n - 1
+    while i1 > i0 and not (0.0 <= theta_phase[i1] <= half):
+        i1 -= 1
+    if i1 <= i0:
         return math.nan
-    i0, i1 = int(inside[0]), int(inside[-1])
-    span = float(t[i1] - t[i0])
-    return float(theta_phase[i1] - theta_phase[i0]) / span if span > 0 else math.nan
+    span = t[i1] - t[i0]
+    return (theta_phase[i1] - theta_phase[i0]) / span if span > 0 else math.nan
 
 
 #: Mean ``az`` over a cycle's rigid half [g] outside of which the input's units or axis are taken as wrong
