@@ -33,8 +33,8 @@ persistent model error. The likelihood's variance is widened by the larger
 of the two, so data the model does not explain get wide intervals.
 
 Limits: the model's geometry and covered leg speeds (``model_legs``,
-``omega_range``); slip 0-0.5 and the soil grid (:meth:`SoilGrid.default`). One cycle step takes about 0.3-0.6 ms
-(compiled; :meth:`SoilSlipEstimator.prefetch` warms its 6 MB table first).
+``omega_range``); slip 0-0.5 and the soil grid (:meth:`SoilGrid.default`). One cycle step takes about 0.5-0.8 ms
+(compiled; :meth:`SoilSlipEstimator.prefetch` warms its 10 MB table first).
 Why it is built this way, and what was tried: ``docs/estimator.md``.
 
 Units: slip [-], kS [N/m], phiS, phiD, dphi [rad].
@@ -357,7 +357,7 @@ class SoilSlipEstimator(CycleEstimator):
     def prefetch(self, omega: float | None = None, noise_smooth: float | None = None) -> None:
         """Get ready for the next cycle: build its table if its leg speed [rad/s] and smoothed noise [g] (when
         known) fall in a new bin (about 0.1 s), then bring what the cycle step reads (the table, the weights,
-        scratch: about 14 MB) into the CPU caches. Call it shortly before a cycle closes
+        scratch: about 11 MB) into the CPU caches. Call it shortly before a cycle closes
         (:class:`~slipest.online.SlipEstimator` does): the step then waits less on memory. Changes nothing else."""
         if self._known:
             return
