@@ -33,8 +33,8 @@ persistent model error. The likelihood's variance is widened by the larger
 of the two, so data the model does not explain get wide intervals.
 
 Limits: the model's geometry and covered leg speeds (``model_legs``,
-``omega_range``); slip 0-0.5 and the soil grid (:meth:`SoilGrid.default`). One cycle step takes about 0.3-0.6 ms
-(compiled; :meth:`SoilSlipEstimator.prefetch` warms its 6 MB table first).
+``omega_range``); slip 0-0.5 and the soil grid (:meth:`SoilGrid.default`). One cycle step takes about 0.5-0.8 ms
+(compiled; :meth:`SoilSlipEstimator.prefetch` warms its 10 MB table first).
 Why it is built this way, and what was tried: ``docs/estimator.md``.
 
 Units: slip [-], kS [N/m], phiS, phiD, dphi [rad].
@@ -158,8 +158,8 @@ def _cycle_step(w, prior, hazard, soil_temper, repeat_temper, moments, forget, c
     ``f64s`` ``(2, S)`` float64, ``sel`` ``(S,)`` int64, ``ps`` ``(K,)`` float64.
     """
     S = w.size
-    lc = f64s[0]  # cell log-likelihoods
-    lw = f64s[1]  # log weights after predict, then the update's log-likelihoods
+    lc = f64s[0]  # cell log-likelihoods, then the update's
+    lw = f64s[1]  # log weights after predict
     best, misfit = grid_loglik(table, fw, lp, node_width, scale, fit_level, dmat, lc, f32s[:2], floor)
     top = -np.inf
     for s in range(S):
@@ -193,7 +193,7 @@ def _cycle_step(w, prior, hazard, soil_temper, repeat_temper, moments, forget, c
         if ref_k >= 0:  # the slip is given: nothing for repeated slips to confound
             temper = soil_temper
     if not skip:
-        ll = lw  # reused: the log weights are not needed any more
+        ll = lc  # the update's log-likelihoods (the cell log-likelihoods are not needed any more)
         if ref_k >= 0:
             l0 = lp[ref_k]
             l1 = lp[ref_k + 1]
@@ -201,16 +201,13 @@ def _cycle_step(w, prior, hazard, soil_temper, repeat_temper, moments, forget, c
             r1 = dmat[ref_k + 1]
             for s in range(S):
                 ll[s] = (1.0 - ref_a) * (r0[s] - l0) + ref_a * (r1[s] - l1)
-        else:
-            for s in range(S):
-                ll[s] = lc[s]
         mx = -np.inf
         for s in range(S):
             if ll[s] > mx:
                 mx = ll[s]
         top = -np.inf  # w^forget * L^temper, in logs (the weights span hundreds of decades)
-        for s in range(S):
-            v = forget * math.log(w[s]) + temper * (ll[s] - mx) if w[s] > 0.0 else -np.inf
+        for s in range(S):  # lw[s] = log(w[s]) when w[s] > 0 (the predict step's)
+            v = forget * lw[s] + temper * (ll[s] - mx) if w[s] > 0.0 else -np.inf
             ll[s] = v
             if v > top:
                 top = v
@@ -360,7 +357,7 @@ class SoilSlipEstimator(CycleEstimator):
     def prefetch(self, omega: float | None = None, noise_smooth: float | None = None) -> None:
         """Get ready for the next cycle: build its table if its leg speed [rad/s] and smoothed noise [g] (when
         known) fall in a new bin (about 0.1 s), then bring what the cycle step reads (the table, the weights,
-        scratch: about 14 MB) into the CPU caches. Call it shortly before a cycle closes
+        scratch: about 11 MB) into the CPU caches. Call it shortly before a cycle closes
         (:class:`~slipest.online.SlipEstimator` does): the step then waits less on memory. Changes nothing else."""
         if self._known:
             return

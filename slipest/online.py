@@ -57,10 +57,12 @@ alike.
 from __future__ import annotations
 
 import math
+import statistics
 from collections import deque
 from dataclasses import asdict, dataclass, fields
 from typing import Callable, Iterable, Iterator
 
+import numba
 import numpy as np
 
 from slipest.cycle_estimator import CycleEstimate
@@ -79,14 +81,21 @@ NOISE_CYCLES = 9
 _DELTA_A, _NOISE, _NOISE_SMOOTH = INDEX["delta_a"], INDEX["noise"], INDEX["noise_smooth"]
 
 
-def _window_speed(t, theta_phase, half: float) -> float:
-    """Mean leg speed [rad/s] over the samples with phase in ``[0, half]`` (NaN when fewer than two)."""
-    inside = np.flatnonzero((theta_phase >= 0.0) & (theta_phase <= half))
-    if inside.size < 2:
+@numba.njit(cache=True)
+def _window_speed(t, theta_phase, half):
+    """Mean leg speed [rad/s] over the samples with phase in ``[0, half]`` (NaN when fewer than two): the phase
+    travelled from the first such sample to the last over the time between them."""
+    n = theta_phase.size
+    i0 = 0
+    while i0 < n and not (0.0 <= theta_phase[i0] <= half):
+        i0 += 1
+    i1 = n - 1
+    while i1 > i0 and not (0.0 <= theta_phase[i1] <= half):
+        i1 -= 1
+    if i1 <= i0:
         return math.nan
-    i0, i1 = int(inside[0]), int(inside[-1])
-    span = float(t[i1] - t[i0])
-    return float(theta_phase[i1] - theta_phase[i0]) / span if span > 0 else math.nan
+    span = t[i1] - t[i0]
+    return (theta_phase[i1] - theta_phase[i0]) / span if span > 0 else math.nan
 
 
 #: Mean ``az`` over a cycle's rigid half [g] outside of which the input's units or axis are taken as wrong
@@ -367,7 +376,7 @@ class SlipEstimator:
         median of the last cycles' measures; NaN before the first)."""
         if self.noise is not None:
             return self.noise
-        return float(np.median(self._noises)) if self._noises else math.nan
+        return float(statistics.median(self._noises)) if self._noises else math.nan  # numpy's value, 40 us less
 
     def reset(self) -> None:
         """Forget the stream and everything learnt (segmenter, soil filter, counters)."""

@@ -74,9 +74,10 @@ class SoilGrid:
 
 @dataclass(frozen=True)
 class Table:
-    """One whitened table: ``columnar`` ``(D, K, S)`` float32 (``D`` the modelled features padded to a
-    multiple of 8), ``whitener`` ``(d, D)`` (features minus the table's values, times it, are standard
-    normal in every coordinate), and the binned leg speed [rad/s] and smoothed noise [g] it is for."""
+    """One whitened table: ``columnar`` ``(D, K, S)`` float32 (``D`` the modelled features; each
+    coordinate is read once per cycle, so the table holds no padding), ``whitener`` ``(D, D)`` (features
+    minus the table's values, times it, are standard normal in every coordinate), and the binned leg speed
+    [rad/s] and smoothed noise [g] it is for."""
 
     columnar: np.ndarray
     whitener: np.ndarray
@@ -130,15 +131,10 @@ class GridTables:
         mu = mu[g.mask]  # (S, K, d)
         r = self.model.cov(omega, noise_smooth)
         w = np.linalg.cholesky(np.linalg.inv(r))  # w w^T = R^-1
-        d = w.shape[0]
-        dpad = int(math.ceil(d / 8) * 8)
-        whitener = np.zeros((d, dpad))
-        whitener[:, :d] = w
-        columnar = np.zeros((dpad, self.nodes.size, mu.shape[0]), dtype=np.float32)
-        columnar[:d] = np.ascontiguousarray((mu @ w).transpose(2, 1, 0))
+        columnar = np.ascontiguousarray((mu @ w).transpose(2, 1, 0), dtype=np.float32)
         columnar.flags.writeable = False
         self.builds += 1
-        return Table(columnar, whitener, omega, noise_smooth)
+        return Table(columnar, w, omega, noise_smooth)
 
 
 _REGISTRY: dict = {}
