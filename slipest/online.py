@@ -307,8 +307,9 @@ class SlipEstimator:
     ``dphi0``, ``dphi0_std``, ``q``). model / calibration: the inverse
     model and calibration dicts to use instead of the shipped files; a
     rover model (:func:`slipest.rover.load_rover`) as ``model`` also gives
-    ``method="eq515"`` its refitted calibration, and removes the
-    disturbance it learnt (if any) from every cycle's samples.
+    ``method="eq515"`` its refitted calibration, removes the
+    disturbance it learnt (if any) from every cycle's samples, and its
+    encoder angle offset (if any) from every ``theta`` sample.
     noise: the IMU noise's standard deviation [g] when known (None: estimated
     from the data, see below).
 
@@ -351,8 +352,10 @@ class SlipEstimator:
         self._seg_opts = {"window": (-half, half), "complete_from": 0.0, "max_dtheta": half / 10.0, **(segmenter or {})}
         self._est_opts = dict(estimator or {})
         self._model = model
-        # a rover model (slipest.rover) may remove a learnt phase-locked disturbance from the samples
+        # a rover model (slipest.rover) may remove a learnt phase-locked disturbance from the samples, and an
+        # encoder angle offset from theta
         self._correct = getattr(model, "sample_correction", None)
+        self._theta_offset = float(getattr(model, "angle_offset", 0.0))
         self._calibration = calibration
         if noise is not None and not (math.isfinite(noise) and noise >= 0):
             raise ValueError(f"noise={noise} g must be a finite number >= 0")
@@ -558,7 +561,7 @@ class SlipEstimator:
         Returns the estimates of the cycles it closed (usually none, at most one or two).
         """
         self._n_samples += 1
-        cycles = self.segmenter.push(t, az, theta)
+        cycles = self.segmenter.push(t, az, theta - self._theta_offset)
         out = []
         if cycles:
             out = self._emit(cycles, [self._ref.take()] + [math.nan] * (len(cycles) - 1))
@@ -580,6 +583,8 @@ class SlipEstimator:
         """
         t = np.asarray(t, dtype=np.float64)
         n = t.shape[0] if t.ndim == 1 else -1
+        if self._theta_offset:
+            theta = np.asarray(theta, dtype=np.float64) - self._theta_offset
         cycles = self.segmenter.push_many(t, az, theta)
         self._n_samples += max(n, 0)
         if slip_ref is None or not cycles:
