@@ -384,11 +384,12 @@ def _heldout_split(logs):
     return held, [lg.subset(~h) for lg, h in zip(logs, held)]
 
 
-def _feature_misfit(model, logs, held) -> float:
-    """Mean squared whitened residual per feature of the held-out cycles, each log's soil fitted on its
-    training cycles (1: explained within the model's scatter)."""
+def _feature_misfit(model, logs) -> float:
+    """Mean squared whitened residual per feature of the logs' held-out cycles (``TestbedLog.heldout_levels``), each
+    log's soil fitted on its training cycles (1: explained within the model's scatter)."""
     sq = []
-    for lg, h in zip(logs, held):
+    for lg in logs:
+        h = lg.heldout_levels()
         soil = log_soil(model, lg, keep=~h)
         ho = lg.subset(h)
         sq.append(whitened_sq(model, ho, log_residuals(model, ho, soil)))
@@ -492,8 +493,7 @@ def calibrate(runs, geometry: Geometry = Geometry(), options: CalibrateOptions =
     shipped = RoverSurrogate.of(base, Discrepancy.zero(base.features, base.center[:4], base.halfwidth[:4]),
                                 np.zeros((len(base.features),) * 2), rover_legs=n_legs)
     before_scores = [blind_score(shipped, lg, options.blind_start, n_legs) for lg in logs]
-    held, _ = _heldout_split(logs)
-    misfit_before = _feature_misfit(shipped, logs, held)
+    misfit_before = _feature_misfit(shipped, logs)
 
     diagnoses = diagnose_runs(runs, geometry, options, progress) if options.diagnose else [None] * len(runs)
     cands = _effect_candidates(diagnoses, runs) if options.diagnose else []
@@ -521,12 +521,12 @@ def calibrate(runs, geometry: Geometry = Geometry(), options: CalibrateOptions =
         model = with_discrepancy(model, layer["discrepancy"])
     soils = [log_soil(model, lg) for lg in logs]
     # held-out scatter beyond the model's covariance: soils from the training levels, residuals of the rest
-    factor = max(1.0, _feature_misfit(model, logs, held))
+    factor = max(1.0, _feature_misfit(model, logs))
     noise_smooth = float(np.median([lg.noise_smooth for lg in logs]))
     omega = float(np.median([lg.omega for lg in logs]))
     widen = (factor - 1.0) * model.cov(omega, noise_smooth)
     model = replace(model, extra_cov=model.extra_cov + widen)
-    misfit_after = _feature_misfit(model, logs, held)
+    misfit_after = _feature_misfit(model, logs)
     intervals = _interval_scale(before_layer, layer, widen, logs, options, n_legs)
     model = replace(model, interval_scale=intervals["scale"])
     after_scores = [blind_score(model, lg, options.blind_start, n_legs) for lg in logs]
