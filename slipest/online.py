@@ -37,11 +37,14 @@ Methods (each a :class:`~slipest.cycle_estimator.CycleEstimator`):
 
 Reference slip: ``push(..., slip_ref=...)`` (per sample; e.g. a log's
 ``slip`` column or a later message). It is **ignored** unless
-``use_reference=True``; a cycle's reference is the last of the
-finite references given with the samples since the previous cycle closed
-(the last one: a log's slip column holds one value a cycle; a later message
-replaces an earlier one) (also reported as ``Estimate.slip_ref``, used or not: a blind test can
-carry the truth along).
+``use_reference=True``; a cycle's reference is the finite reference
+given most often with the samples since the previous cycle closed, the
+latest of them on a tie (:class:`ReferenceTally`: a log's slip column
+changes value near a cycle's boundary, a sample early or late, and the few
+samples of the neighbouring cycle's value must not label the cycle; a
+reference sent as one message a cycle is that message, a later one
+replacing an earlier one) (also reported as ``Estimate.slip_ref``, used or
+not: a blind test can carry the truth along).
 
 The same object serves replay and live streams; :meth:`SlipEstimator.iter_estimates`
 runs it over an iterable of sample chunks and ``on_estimate`` calls back
@@ -160,6 +163,56 @@ def fit_advice(cycles: int, cycles_off_model: int) -> str | None:
 PREFETCH_LEAD = 0.99
 
 
+class ReferenceTally:
+    """The reference slip of the cycle being filled: the finite value given most often since :meth:`take`, the
+    latest of them on a tie (NaN: none given). Values are compared exactly (a log's column repeats one value a
+    cycle)."""
+
+    __slots__ = ("_counts", "_n")
+
+    def __init__(self):
+        self._counts: dict[float, list] = {}  # value -> [count, position of its latest occurrence]
+        self._n = 0
+
+    def add(self, value: float) -> None:
+        """One reference [-] (ignored unless finite)."""
+        if math.isfinite(value):
+            self._n += 1
+            c = self._counts.get(value)
+            if c is None:
+                self._counts[value] = [1, self._n]
+            else:
+                c[0] += 1
+                c[1] = self._n
+
+    def add_many(self, values: np.ndarray) -> None:
+        """The references of consecutive samples, in order (non-finite ones ignored): as :meth:`add` on each."""
+        v = values[np.isfinite(values)]
+        if v.size == 0:
+            return
+        if v[0] == v[-1] and np.all(v == v[0]):  # the usual case: one value over the whole slice
+            uniq, counts, last = v[:1], np.array([v.size]), np.array([v.size - 1])
+        else:
+            uniq, first_rev, counts = np.unique(v[::-1], return_index=True, return_counts=True)
+            last = v.size - 1 - first_rev
+        for value, count, pos in zip(uniq.tolist(), counts.tolist(), last.tolist()):
+            c = self._counts.get(value)
+            if c is None:
+                self._counts[value] = [count, self._n + pos + 1]
+            else:
+                c[0] += count
+                c[1] = self._n + pos + 1
+        self._n += v.size
+
+    def take(self) -> float:
+        """The cycle's reference (see the class docstring), and start the next cycle's."""
+        if not self._counts:
+            return math.nan
+        value = max(self._counts.items(), key=lambda kv: (kv[1][0], kv[1][1]))[0]
+        self._counts = {}
+        return value
+
+
 @dataclass(frozen=True)
 class Estimate:
     """One leg cycle's estimate.
@@ -171,7 +224,7 @@ class Estimate:
     phiS, phiS_std [rad] where estimated (or known: std 0), else NaN;
     change_prob [-]: probability the soil changed at this cycle (default
     method; NaN otherwise); slip_ref [-]: the reference slip given with
-    this cycle's samples (the last finite one; NaN: none), whether used or not;
+    this cycle's samples (the most frequent finite one; NaN: none), whether used or not;
     used_reference: the estimator learnt the soil from it; n_samples:
     samples in the cycle; quality: ``"ok"``, ``"repaired"`` (estimated
     without ``n_repaired`` of its samples: missing in short holes,
@@ -263,8 +316,9 @@ class SlipEstimator:
     ``dphi0``, ``dphi0_std``, ``q``). model / calibration: the inverse
     model and calibration dicts to use instead of the shipped files; a
     rover model (:func:`slipest.rover.load_rover`) as ``model`` also gives
-    ``method="eq515"`` its refitted calibration, and removes the
-    disturbance it learnt (if any) from every cycle's samples.
+    ``method="eq515"`` its refitted calibration, removes the
+    disturbance it learnt (if any) from every cycle's samples, and its
+    encoder angle offset (if any) from every ``theta`` sample.
     noise: the IMU noise's standard deviation [g] when known (None: estimated
     from the data, see below).
 
@@ -307,8 +361,10 @@ class SlipEstimator:
         self._seg_opts = {"window": (-half, half), "complete_from": 0.0, "max_dtheta": half / 10.0, **(segmenter or {})}
         self._est_opts = dict(estimator or {})
         self._model = model
-        # a rover model (slipest.rover) may remove a learnt phase-locked disturbance from the samples
+        # a rover model (slipest.rover) may remove a learnt phase-locked disturbance from the samples, and an
+        # encoder angle offset from theta
         self._correct = getattr(model, "sample_correction", None)
+        self._theta_offset = float(getattr(model, "angle_offset", 0.0))
         self._calibration = calibration
         if noise is not None and not (math.isfinite(noise) and noise >= 0):
             raise ValueError(f"noise={noise} g must be a finite number >= 0")
@@ -346,7 +402,7 @@ class SlipEstimator:
                              "recalibrate/retrain it for this geometry")
 
     def _reset_counts(self) -> None:
-        self._ref = math.nan  # last finite reference slip since the last cycle closed
+        self._ref = ReferenceTally()  # the references given since the last cycle closed
         self._prefetch_at = math.inf  # sample time [s] from which to prefetch for the next close
         self._n_samples = 0
         self._n_estimates = 0
@@ -514,20 +570,18 @@ class SlipEstimator:
         Returns the estimates of the cycles it closed (usually none, at most one or two).
         """
         self._n_samples += 1
-        cycles = self.segmenter.push(t, az, theta)
+        cycles = self.segmenter.push(t, az, theta - self._theta_offset)
         out = []
         if cycles:
-            ref = self._ref
-            self._ref = math.nan
-            out = self._emit(cycles, [ref] + [math.nan] * (len(cycles) - 1))
+            out = self._emit(cycles, [self._ref.take()] + [math.nan] * (len(cycles) - 1))
             last = cycles[-1]
             self._prefetch_at = last.t_end + PREFETCH_LEAD * (last.t_end - last.t_start)
         elif t >= self._prefetch_at:  # the next close is near: get the estimator's table ready, warm it
             self._prefetch_at = math.inf
             wt, wph = self.segmenter.open_window()
             self.filter.prefetch(_window_speed(wt, wph, math.pi / self.n_legs), self._noise_smooth)
-        if slip_ref is not None and math.isfinite(slip_ref):
-            self._ref = float(slip_ref)
+        if slip_ref is not None:
+            self._ref.add(float(slip_ref))
         return out
 
     def push_many(self, t, az, theta, slip_ref=None) -> list:
@@ -538,15 +592,16 @@ class SlipEstimator:
         """
         t = np.asarray(t, dtype=np.float64)
         n = t.shape[0] if t.ndim == 1 else -1
+        if self._theta_offset:
+            theta = np.asarray(theta, dtype=np.float64) - self._theta_offset
         cycles = self.segmenter.push_many(t, az, theta)
         self._n_samples += max(n, 0)
         if slip_ref is None or not cycles:
             refs = [math.nan] * len(cycles)
             if slip_ref is not None:
-                self._accumulate(np.asarray(slip_ref, dtype=float))
+                self._ref.add_many(np.asarray(slip_ref, dtype=float))
             elif cycles:
-                refs[0] = self._ref
-                self._ref = math.nan
+                refs[0] = self._ref.take()
             return self._emit(cycles, refs)
         slip_ref = np.asarray(slip_ref, dtype=float)
         if slip_ref.shape != t.shape:
@@ -560,11 +615,10 @@ class SlipEstimator:
                 refs.append(math.nan)  # closed by the same sample as the previous cycle (skipped cycles)
                 continue
             end = start + int(hit[0])
-            self._accumulate(slip_ref[start:end])
-            refs.append(self._ref)
-            self._ref = math.nan
+            self._ref.add_many(slip_ref[start:end])
+            refs.append(self._ref.take())
             start = end
-        self._accumulate(slip_ref[start:])
+        self._ref.add_many(slip_ref[start:])
         return self._emit(cycles, refs)
 
     def finish(self) -> list:
@@ -572,15 +626,8 @@ class SlipEstimator:
         the stream stopped inside its window; see :meth:`slipest.segmentation.CycleSegmenter.finish`). Samples
         pushed afterwards start a new stream; the soil filter keeps what it learnt."""
         cycles = self.segmenter.finish()
-        ref = self._ref
-        self._ref = math.nan
+        ref = self._ref.take()
         return self._emit(cycles, [ref] * len(cycles))
-
-    def _accumulate(self, refs: np.ndarray) -> None:
-        """Remember the last finite reference of ``refs``."""
-        ok = np.flatnonzero(np.isfinite(refs))
-        if ok.size:
-            self._ref = float(refs[ok[-1]])
 
     def iter_estimates(self, chunks: Iterable) -> Iterator[Estimate]:
         """Estimates over an iterable of sample chunks, as they come.

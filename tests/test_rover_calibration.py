@@ -431,3 +431,90 @@ def test_an_additive_effect_named_by_the_diagnosis_is_also_tried_removed_from_th
     (removed,) = _removal_candidates([impact, lowpass], [Log(), Log()], 4)
     assert removed.named and removed.shrink == 0.98 and removed.effects == impact.effects and not removed.learnt
     assert len(removed.disturbance["phase"]) == len(removed.disturbance["az"]) >= 1000
+
+
+def test_an_encoder_offset_or_a_time_skew_is_an_angle_offset_and_other_effects_are_not():
+    from slipest.rover.waveform import effect_angle_offset
+
+    assert effect_angle_offset([{"name": "angle_offset", "offset": 0.12}], 0.63, 4) == pytest.approx(0.12)
+    assert effect_angle_offset([{"name": "time_skew", "skew": 0.2}], 0.5, 4) == pytest.approx(0.1)
+    assert effect_angle_offset([{"name": "angle_offset", "offset": 0.12}, {"name": "time_skew", "skew": 0.1}],
+                               0.6, 4) == pytest.approx(0.18)
+    assert effect_angle_offset([{"name": "angle_offset", "offset": 0.9}], 0.63, 4) is None  # past half a cycle
+    for other in ({"name": "imu_lowpass"}, {"name": "touchdown_impact"}, {"name": "contact_damping"}):
+        assert effect_angle_offset([other], 0.63, 4) is None, other
+        assert effect_angle_offset([{"name": "angle_offset", "offset": 0.1}, other], 0.63, 4) is None, other
+
+
+def test_an_encoder_offset_is_removed_from_theta_before_the_cycles_are_cut(tmp_path):
+    """A rover whose encoder reads the true angle plus an offset, estimated with a rover model that knows the
+    offset, gives the estimates the same (uncorrected) model gives the stream without the offset; the offset
+    survives the file; an offset of half a leg cycle or more is refused naming the file."""
+    from slipest.online import SlipEstimator
+
+    m = load_inverse_model()
+    zero = Discrepancy.zero(m.features, m.center[:4], m.halfwidth[:4])
+    plain = RoverSurrogate.of(m, zero, np.zeros((14, 14)))
+    rover = RoverSurrogate.of(m, zero, np.zeros((14, 14)), angle_offset=0.15)
+    loaded = load_rover(save_rover(rover, {}, tmp_path / "rover.json"))
+    assert loaded.angle_offset == 0.15
+    s = simulate_stream(Scenario.per_cycle(StickSlipParams(kS=900.0, phiS=0.55, phiD=0.35),
+                                           {"rate": 1000.0, "noise_g": 0.01, "seed": 5},
+                                           slip=np.array([0.1, 0.3, 0.2, 0.4, 0.25, 0.15])))
+    clean = SlipEstimator(n_legs=4, model=plain).push_many(s.t, s.az, s.theta, s.slip)
+    fixed = SlipEstimator(n_legs=4, model=loaded).push_many(s.t, s.az, s.theta + 0.15, s.slip)
+    raw = SlipEstimator(n_legs=4, model=plain).push_many(s.t, s.az, s.theta + 0.15, s.slip)
+    ok = [(a, b) for a, b in zip(clean, fixed) if a.ok]
+    assert len(ok) >= 4 and all(a.cycle == b.cycle and a.slip_ref == b.slip_ref for a, b in ok)
+    np.testing.assert_allclose([b.slip for _, b in ok], [a.slip for a, _ in ok], atol=1e-6)
+    # one by one, the same
+    one = SlipEstimator(n_legs=4, model=loaded)
+    pushed = [e for a, b, c, d in zip(s.t.tolist(), s.az.tolist(), (s.theta + 0.15).tolist(), s.slip.tolist())
+              for e in one.push(a, b, c, d)]
+    np.testing.assert_allclose([e.slip for e in pushed if e.ok][:len(ok)], [b.slip for _, b in ok], atol=1e-9)
+    # without the correction the offset moves the estimates
+    assert max(abs(c.slip - a.slip) for a, c in zip(clean, raw) if a.ok and c.ok) > 0.05
+    doc = json.loads((tmp_path / "rover.json").read_text())
+    doc["angle_offset"] = math.pi / 4
+    (tmp_path / "bad.json").write_text(json.dumps(doc))
+    with pytest.raises(RoverFileError, match="bad.json.*angle_offset"):
+        load_rover(tmp_path / "bad.json")
+    del doc["angle_offset"]  # a file from before the field: no offset
+    (tmp_path / "old.json").write_text(json.dumps(doc))
+    assert load_rover(tmp_path / "old.json").angle_offset == 0.0
+
+
+def test_an_angle_effect_named_by_the_diagnosis_is_also_tried_removed_from_theta():
+    from slipest.rover.calibrate import Candidate, _removal_candidates
+
+    class Log:
+        omega = 0.5
+
+    skew = Candidate("time_skew", ({"name": "time_skew", "skew": 0.2},), 0.3, "named in a", named=True, shrink=0.97)
+    (removed,) = _removal_candidates([skew], [Log(), Log()], 4)
+    assert removed.named and removed.shrink == 0.97 and removed.effects == skew.effects
+    assert removed.angle_offset == pytest.approx(0.1) and removed.disturbance is None and removed.corrects_samples
+
+
+def test_a_learnt_disturbance_is_the_band_limited_waveform_of_its_bin_averages():
+    """Bin averages of an oscillation of 11 and 7 bins per period: the band-limited waveform is the oscillation
+    (to 1e-3 of its amplitude), where interpolating the averages loses several percent; values not at the
+    centres of equal bins are refused."""
+    from slipest.rover.waveform import band_limited
+
+    half, nb = math.pi / 4, 250
+    edges = np.linspace(-half, half, nb + 1)
+    centres = 0.5 * (edges[1:] + edges[:-1])
+
+    def wave(x):
+        u = (x + half) / (2 * half)
+        return 3.0 * np.sin(2 * math.pi * 23 * u) + 1.5 * np.cos(2 * math.pi * 36 * u + 0.4)
+
+    averages = np.array([wave(np.linspace(a, b, 4001)).mean() for a, b in zip(edges[:-1], edges[1:])])
+    phases, values = band_limited(centres, averages, 4)
+    assert phases.size == 4000 and abs(values.mean()) < 1e-9
+    truth = wave(phases)
+    assert np.max(np.abs(values - truth)) < 3e-3
+    assert np.max(np.abs(np.interp(phases, centres, averages, period=2 * half) - truth)) > 0.1
+    with pytest.raises(ValueError, match="equal bins"):
+        band_limited(centres[::-1], averages, 4)

@@ -21,7 +21,9 @@ its own unknown soil, and the rover's known hardware
    name if those beat the shipped model's by :data:`MIN_GAIN` (:func:`_choose`).
    An effect that only adds to ``az`` (a touchdown impact) is also tried
    removed from the samples (its waveform over the leg phase at the
-   testbed's speed); the blind estimates choose between the two forms.
+   testbed's speed), and one that only moves the angle (an encoder offset,
+   a time skew) removed from ``theta``; the blind estimates choose between
+   the two forms.
    When no named effect explains a log well (shrink below
    :data:`WELL_EXPLAINED`), a phase-locked ``az`` disturbance learnt from the
    logs' waveforms (:mod:`slipest.rover.waveform`) is a candidate too, as if
@@ -138,11 +140,17 @@ class Candidate:
     named: bool = False
     shrink: float = 0.0
     disturbance: dict | None = None
+    angle_offset: float = 0.0
     learnt: bool = False
     model: object = None
     logs: list | None = None
     scores: list = field(default_factory=list)
     seconds: float = 0.0
+
+    @property
+    def corrects_samples(self) -> bool:
+        """Its model corrects the samples (a disturbance removed from ``az``, an offset from ``theta``)."""
+        return self.disturbance is not None or self.angle_offset != 0.0
 
     def choice_rmse(self, spread: float) -> float:
         """:func:`_choice_rmse` of its blind scores."""
@@ -256,31 +264,38 @@ def _effect_candidates(diagnoses, runs) -> list[Candidate]:
 
 def _removal_candidates(cands, logs, n_legs: int) -> list[Candidate]:
     """For each effect candidate that only adds to ``az`` (:func:`slipest.rover.waveform.effect_disturbance`:
-    a touchdown impact), the same effect removed from the samples at the testbed's leg speed instead of
-    modelled as a feature discrepancy: as named as the effect, with its shrink."""
-    from slipest.rover.waveform import effect_disturbance
+    a touchdown impact) or only moves the angle (:func:`slipest.rover.waveform.effect_angle_offset`: an
+    encoder offset, a time skew at the testbed's leg speed), the same effect removed from the samples instead
+    of modelled as a feature discrepancy: as named as the effect, with its shrink."""
+    from slipest.rover.waveform import effect_angle_offset, effect_disturbance
 
     omega = float(np.median([lg.omega for lg in logs]))
     out = []
     for c in cands:
-        if c.disturbance is not None or not c.effects:
+        if c.corrects_samples or not c.effects:
+            continue
+        origin = f"{c.origin}; removed from the samples"
+        offset = effect_angle_offset(c.effects, omega, n_legs)
+        if offset is not None:
+            out.append(Candidate(f"{c.label} removed", c.effects, c.kappa, origin, c.named, c.shrink,
+                                 angle_offset=offset))
             continue
         wave = effect_disturbance(c.effects, omega, n_legs)
-        if wave is None:
-            continue
-        out.append(Candidate(f"{c.label} removed", c.effects, c.kappa, f"{c.origin}; removed from the samples",
-                             c.named, c.shrink, disturbance={"phase": wave[0].tolist(), "az": wave[1].tolist()}))
+        if wave is not None:
+            out.append(Candidate(f"{c.label} removed", c.effects, c.kappa, origin, c.named, c.shrink,
+                                 disturbance={"phase": wave[0].tolist(), "az": wave[1].tolist()}))
     return out
 
 
 def _disturbance_candidate(diagnoses, geometry: Geometry, options: CalibrateOptions, progress: Progress | None,
                            runs, base, n_legs: int) -> Candidate | None:
     """A phase-locked ``az`` disturbance learnt from each diagnosed log's training cycles (their mean,
-    :func:`slipest.rover.waveform.learn_disturbance`), removed from the samples, with the testbed logs'
+    :func:`slipest.rover.waveform.learn_disturbance`, as a band-limited waveform,
+    :func:`~slipest.rover.waveform.band_limited`), removed from the samples, with the testbed logs'
     features recomputed through the correction (``cand.logs``): no candidate when it shrinks the logs'
     held-out gaps by less than :data:`PARTIAL_SHRINK` on average, a named one (as an effect the diagnosis
     names) from :data:`DISTURBANCE_SHRINK`."""
-    from slipest.rover.waveform import learn_disturbance
+    from slipest.rover.waveform import band_limited, learn_disturbance
 
     done = [d for d in diagnoses if d is not None]
     if not done:
@@ -292,12 +307,14 @@ def _disturbance_candidate(diagnoses, geometry: Geometry, options: CalibrateOpti
     shrink = float(np.mean([x.shrink for x in learnt]))
     if shrink < PARTIAL_SHRINK:
         return None  # it does not explain the held-out cycles: not a disturbance locked to the phase
-    wave = np.mean([x.values for x in learnt], axis=0)
+    # the logs' mean over the diagnosis's bins, as the band-limited waveform with those bin averages (an
+    # oscillation of a few bins per period keeps its amplitude)
+    phases, wave = band_limited(learnt[0].phases, np.mean([x.values for x in learnt], axis=0), n_legs)
     rms = float(np.sqrt(np.mean(wave**2))) / 9.81 * 1000
     cand = Candidate("learnt disturbance", (), float(np.median([x.kappa for x in learnt])),
                      f"the logs' mean residual waveform (RMS {rms:.0f} mg), held-out gap shrink {shrink:.0%}",
                      named=shrink >= DISTURBANCE_SHRINK, shrink=shrink, learnt=True)
-    cand.disturbance = {"phase": learnt[0].phases.tolist(), "az": wave.tolist(),
+    cand.disturbance = {"phase": phases.tolist(), "az": wave.tolist(),
                         "heldout_gap_g": [[x.gap_nominal, x.gap_after] for x in learnt]}
     return cand
 
@@ -323,14 +340,15 @@ def _choose(cands, shipped_rmse: float, spread: float):
 
 
 def _build_candidate(base, cand: Candidate, logs, options: CalibrateOptions, n_legs: int, rng, runs=()) -> None:
-    """The candidate's model and blind scores (in place): a learnt disturbance's model removes it from the
-    samples (the testbed logs' features recomputed through it: ``cand.logs``); an effect's simulates its
-    batch and fits the discrepancy and extra covariance."""
+    """The candidate's model and blind scores (in place): a sample correction's model (a disturbance removed
+    from ``az``, an offset from ``theta``) applies it to the samples (the testbed logs' features recomputed
+    through it: ``cand.logs``); an effect's simulates its batch and fits the discrepancy and extra covariance."""
     t0 = time.perf_counter()
-    if cand.disturbance is not None:
+    if cand.corrects_samples:
         zero = Discrepancy.zero(base.features, base.center[:4], base.halfwidth[:4])
+        disturbance = None if cand.disturbance is None else {k: cand.disturbance[k] for k in ("phase", "az")}
         cand.model = RoverSurrogate.of(base, zero, np.zeros((len(base.features),) * 2), rover_legs=n_legs,
-                                       disturbance={k: cand.disturbance[k] for k in ("phase", "az")})
+                                       disturbance=disturbance, angle_offset=cand.angle_offset)
         cand.logs = [TestbedLog.from_samples(r.name, r.t, r.az, r.theta, r.slip, n_legs, model=cand.model)
                      for r in runs]
         cand.scores = [blind_score(cand.model, lg, options.blind_start, n_legs) for lg in cand.logs]
@@ -366,11 +384,12 @@ def _heldout_split(logs):
     return held, [lg.subset(~h) for lg, h in zip(logs, held)]
 
 
-def _feature_misfit(model, logs, held) -> float:
-    """Mean squared whitened residual per feature of the held-out cycles, each log's soil fitted on its
-    training cycles (1: explained within the model's scatter)."""
+def _feature_misfit(model, logs) -> float:
+    """Mean squared whitened residual per feature of the logs' held-out cycles (``TestbedLog.heldout_levels``), each
+    log's soil fitted on its training cycles (1: explained within the model's scatter)."""
     sq = []
-    for lg, h in zip(logs, held):
+    for lg in logs:
+        h = lg.heldout_levels()
         soil = log_soil(model, lg, keep=~h)
         ho = lg.subset(h)
         sq.append(whitened_sq(model, ho, log_residuals(model, ho, soil)))
@@ -474,14 +493,13 @@ def calibrate(runs, geometry: Geometry = Geometry(), options: CalibrateOptions =
     shipped = RoverSurrogate.of(base, Discrepancy.zero(base.features, base.center[:4], base.halfwidth[:4]),
                                 np.zeros((len(base.features),) * 2), rover_legs=n_legs)
     before_scores = [blind_score(shipped, lg, options.blind_start, n_legs) for lg in logs]
-    held, _ = _heldout_split(logs)
-    misfit_before = _feature_misfit(shipped, logs, held)
+    misfit_before = _feature_misfit(shipped, logs)
 
     diagnoses = diagnose_runs(runs, geometry, options, progress) if options.diagnose else [None] * len(runs)
     cands = _effect_candidates(diagnoses, runs) if options.diagnose else []
     cands += _removal_candidates(cands, logs, n_legs)
     for k, cand in enumerate(cands):
-        label = (f"features with {cand.label} from the samples" if cand.disturbance is not None
+        label = (f"features with {cand.label} from the samples" if cand.corrects_samples
                  else f"simulating {cand.label} ({options.batch} cycles)")
         _stage(progress, k, len(cands), label)
         _build_candidate(base, cand, logs, options, n_legs, rng, runs)
@@ -503,12 +521,12 @@ def calibrate(runs, geometry: Geometry = Geometry(), options: CalibrateOptions =
         model = with_discrepancy(model, layer["discrepancy"])
     soils = [log_soil(model, lg) for lg in logs]
     # held-out scatter beyond the model's covariance: soils from the training levels, residuals of the rest
-    factor = max(1.0, _feature_misfit(model, logs, held))
+    factor = max(1.0, _feature_misfit(model, logs))
     noise_smooth = float(np.median([lg.noise_smooth for lg in logs]))
     omega = float(np.median([lg.omega for lg in logs]))
     widen = (factor - 1.0) * model.cov(omega, noise_smooth)
     model = replace(model, extra_cov=model.extra_cov + widen)
-    misfit_after = _feature_misfit(model, logs, held)
+    misfit_after = _feature_misfit(model, logs)
     intervals = _interval_scale(before_layer, layer, widen, logs, options, n_legs)
     model = replace(model, interval_scale=intervals["scale"])
     after_scores = [blind_score(model, lg, options.blind_start, n_legs) for lg in logs]
@@ -529,7 +547,8 @@ def calibrate(runs, geometry: Geometry = Geometry(), options: CalibrateOptions =
         "correction": {
             "effect": None if chosen is None else {"label": chosen.label, "effects": [dict(e) for e in chosen.effects],
                                                    "kappa": chosen.kappa, "origin": chosen.origin,
-                                                   "disturbance": chosen.disturbance},
+                                                   "disturbance": chosen.disturbance,
+                                                   "angle_offset": chosen.angle_offset},
             "testbed": {k: layer[k] for k in ("used", "how", "heldout_without", "heldout_with")},
             "covariance_factor": factor,
             "interval_scale": intervals,

@@ -18,6 +18,7 @@ naming the file and what is wrong. Layout (units SI, features in
     eq515           the refitted Eq. 5.15 calibration ({"eq515": {...}, "model": {"params": {"nL", "omega"}}})
     disturbance     null, or the phase-locked az disturbance removed from the samples ({"phase": [rad], "az": [m/s^2]})
     interval_scale  factor (>= 1) on the estimator's standard deviations (absent: 1)
+    angle_offset    encoder angle minus true leg angle [rad], subtracted from every theta sample (absent: 0)
     report          what the calibration found (slipest.rover.calibrate.Calibration.report)
 """
 
@@ -76,6 +77,7 @@ def rover_document(model: RoverSurrogate, report: dict, created_by: str, base_pa
         "eq515": model.eq515,
         "disturbance": model.disturbance,
         "interval_scale": float(model.interval_scale),
+        "angle_offset": float(model.angle_offset),
         "report": report,
     }
 
@@ -144,7 +146,8 @@ def load_rover(path, n_legs: int | None = None, base=None) -> RoverSurrogate:
         disc = Discrepancy.from_dict(doc["discrepancy"])
         model = RoverSurrogate.of(base, disc, np.asarray(doc["extra_cov"], dtype=float), rover_legs=legs,
                                   eq515=doc["eq515"], source=source, disturbance=doc.get("disturbance"),
-                                  interval_scale=float(doc.get("interval_scale", 1.0)))
+                                  interval_scale=float(doc.get("interval_scale", 1.0)),
+                                  angle_offset=float(doc.get("angle_offset", 0.0)))
     except (KeyError, TypeError, ValueError) as exc:
         raise RoverFileError(f"{source}: malformed rover model ({exc})") from None
     if base.n_legs != legs:

@@ -59,6 +59,10 @@ def report_lines(report: dict) -> list[str]:
     if eff is None:
         tried = ", ".join(f"{c['label']} ({_blind(c['blind'])})" for c in report["candidates"]) or "none"
         out.append(f"correction: no catalog effect used (tried: {tried})")
+    elif eff.get("angle_offset"):
+        what = "; ".join(f"{e['name']} ({_params(e)})" for e in eff["effects"])
+        out.append(f"correction: {what} removed from the samples: {eff['angle_offset']:+.4f} rad (encoder angle minus "
+                   f"true angle at the testbed's leg speed) subtracted from every theta sample ({eff['origin']})")
     elif eff.get("disturbance") and eff["effects"]:
         what = "; ".join(f"{e['name']} ({_params(e)})" for e in eff["effects"])
         out.append(f"correction: {what} removed from the samples before their features are computed, as its "

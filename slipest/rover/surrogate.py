@@ -14,7 +14,12 @@ applied as they are elsewhere. ``disturbance``: an ``az`` disturbance
 locked to the leg phase that the calibration learnt from the testbed's
 waveforms (``{"phase": [rad], "az": [m/s^2]}``, :mod:`slipest.rover.waveform`),
 or None; :attr:`sample_correction` removes it from a cycle's samples before
-their features are computed (:class:`slipest.online.SlipEstimator` applies it). ``eq515``: the Eq. 5.15 calibration refitted
+their features are computed (:class:`slipest.online.SlipEstimator` applies it).
+``angle_offset`` [rad]: the encoder's angle minus the true leg angle that the
+calibration found (an encoder zero off the true midstance, or a time skew
+between IMU and encoder times the testbed's leg speed; 0: none);
+:class:`slipest.online.SlipEstimator` subtracts it from every ``theta``
+sample before the stream is cut into cycles. ``eq515``: the Eq. 5.15 calibration refitted
 on the same testbed logs (a calibration dict as
 :meth:`slipest.inverse.eq515.Eq515Tracker.from_calibration` reads it), or
 None. ``interval_scale`` (>= 1): the factor on the estimator's standard
@@ -69,10 +74,14 @@ class RoverSurrogate(FeatureSurrogate):
     source: str = "rover model"
     disturbance: dict | None = None
     interval_scale: float = 1.0
+    angle_offset: float = 0.0
 
     def __post_init__(self):
         super().__post_init__()
         d = len(self.features)
+        if not (math.isfinite(self.angle_offset) and abs(self.angle_offset) < math.pi / self.n_legs):
+            raise ValueError(f"{self.source}: angle_offset must be finite and within half a leg cycle "
+                             f"(|offset| < pi/nL), got {self.angle_offset} rad")
         if not (math.isfinite(self.interval_scale) and self.interval_scale >= 1.0):
             raise ValueError(f"{self.source}: interval_scale must be finite and >= 1, got {self.interval_scale}")
         if self.discrepancy is None or tuple(self.discrepancy.features) != tuple(self.features):

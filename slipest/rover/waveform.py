@@ -24,7 +24,10 @@ model's, as the diagnosis judges a catalog effect.
 catalog effect the diagnosis fitted, when that effect adds to ``az``
 something that does not depend on ``az`` (a touchdown impact): its
 steady-state waveform over a leg cycle at the testbed's leg speed, exact
-where a learnt mean is noisy.
+where a learnt mean is noisy. :func:`effect_angle_offset` gives the encoder
+angle offset of a catalog effect that only moves the angle against the
+``az`` samples (an encoder offset; a time skew, at the testbed's leg speed),
+which the rover's model subtracts from ``theta``.
 
 Units: phase [rad] (``[-pi/nL, pi/nL)``), disturbance [m/s^2], gaps [g].
 """
@@ -107,6 +110,52 @@ def effect_disturbance(specs, omega: float, n_legs: int, rate: float = 20000.0):
     return phases, values - np.mean(values)
 
 
+def band_limited(phases, values, n_legs: int, n_out: int = EFFECT_PHASES):
+    """The periodic band-limited signal whose averages over equal phase bins are ``values`` [m/s^2].
+
+    ``phases``: ``(nb,)`` bin centres [rad], evenly spaced over a leg cycle
+    (``[-pi/nL, pi/nL)``); ``values``: the signal averaged over each bin (a
+    learnt disturbance). Each harmonic ``k`` of the cycle is divided by the
+    bin average's gain ``sinc(k / nb)`` and the Fourier series is evaluated
+    at ``n_out`` phases (centres of equal bins): an oscillation of a few bins
+    per period keeps its amplitude, where interpolating the averages loses
+    5-15 % of it. Returns ``(phases (n_out,) [rad], values (n_out,) [m/s^2],
+    zero mean)``."""
+    phases = np.asarray(phases, dtype=float)
+    values = np.asarray(values, dtype=float)
+    nb = values.size
+    half = math.pi / n_legs
+    if nb < 4 or not np.allclose(phases, -half + (np.arange(nb) + 0.5) * 2.0 * half / nb, atol=1e-9):
+        raise ValueError("band_limited needs the values at the centres of at least 4 equal bins over [-pi/nL, pi/nL)")
+    k = np.arange(nb // 2 + 1)
+    spectrum = np.fft.rfft(values) / np.sinc(k / nb)
+    weight = np.where((k == 0) | (2 * k == nb), 1.0, 2.0) / nb  # the real series of the one-sided spectrum
+    weight[0] = 0.0  # zero mean
+    out = -half + (np.arange(n_out) + 0.5) * 2.0 * half / n_out
+    pos = (out + half) / (2.0 * half) * nb - 0.5  # in bins from the first centre
+    series = (np.exp(2j * math.pi * np.outer(pos, k) / nb) * (weight * spectrum)).real.sum(axis=1)
+    return out, series - np.mean(series)
+
+
+def effect_angle_offset(specs, omega: float, n_legs: int) -> float | None:
+    """The encoder angle offset [rad] the catalog effects ``specs`` (``{"name": ..., params}``) amount to at
+    steady leg speed ``omega`` [rad/s] (:meth:`slipest.model.effects.base.Effect.angle_offset_at`: an encoder
+    offset, a time skew), summed; None when one of them does anything else or the sum is not within half a leg
+    cycle (``|offset| < pi/nL``)."""
+    from slipest.model.effects import EFFECTS
+
+    if not specs:
+        return None
+    total = 0.0
+    for spec in specs:
+        effect = EFFECTS[spec["name"]]
+        offset = effect.angle_offset_at({**effect.defaults(), **{k: v for k, v in spec.items() if k != "name"}}, omega)
+        if offset is None:
+            return None
+        total += offset
+    return total if math.isfinite(total) and abs(total) < math.pi / n_legs else None
+
+
 def learn_disturbance(diagnosis, geometry, iterations: int = 2, seed: int = 0, budget=None) -> LearntDisturbance:
     """The disturbance of a diagnosed log (:class:`~slipest.diagnosis.run.Diagnosis`), learnt on its training
     cycles and judged on its held-out ones (see the module docstring)."""
@@ -132,4 +181,4 @@ def learn_disturbance(diagnosis, geometry, iterations: int = 2, seed: int = 0, b
                              float(nominal.values["kappa"]))
 
 
-__all__ = ["LearntDisturbance", "learn_disturbance", "phase_correction"]
+__all__ = ["LearntDisturbance", "band_limited", "effect_angle_offset", "effect_disturbance", "learn_disturbance", "phase_correction"]

@@ -47,5 +47,9 @@ class AngleOffsetEffect(Effect):
     def stage(self, values):
         return AngleOffset(values["offset"])
 
+    def angle_offset_at(self, values, omega):
+        """``offset`` [rad], at any leg speed."""
+        return float(values["offset"])
+
     def sense(self, x, values, ctx):
         return ctx.bin_average(x, values["offset"])

@@ -246,6 +246,12 @@ class Effect:
         """
         return {p.name: fitted[p.name] for p in self.params}
 
+    def angle_offset_at(self, values: dict, omega: float) -> float | None:
+        """The encoder angle offset [rad] (encoder angle minus true angle) this effect at ``values`` amounts to at
+        steady leg speed ``omega`` [rad/s], when all it does is move the angle against the ``az`` samples;
+        None otherwise (default): a calibration then removes it from ``theta``."""
+        return None
+
     def equivalent_on(self, omega) -> str | None:
         """The catalog effect this one cannot be told from on cycles of leg speeds ``omega`` [rad/s] (default None).
 

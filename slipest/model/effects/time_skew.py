@@ -115,6 +115,10 @@ class TimeSkewEffect(Effect):
             out[:, sel] = ctx.bin_average(x[:, sel], edges - true)
         return out
 
+    def angle_offset_at(self, values, omega):
+        """``omega skew`` [rad]: at a steady leg speed ``omega`` [rad/s] the skew is that angle offset."""
+        return float(omega) * float(values["skew"])
+
     def equivalent_on(self, omega) -> str | None:
         """``angle_offset`` when the cycles' leg speeds ``omega`` [rad/s] spread by less than :attr:`MIN_SPEED_SPREAD`."""
         omega = np.asarray(omega, dtype=float)
