@@ -100,6 +100,20 @@ class Proc:
         return "\n".join(self.err_lines)
 
 
+def stop_once_said(proc: Proc, text: str, times: int = 1, timeout: float = 30.0) -> None:
+    """SIGTERM ``proc`` (a live run) once ``text`` stands ``times`` times on its stderr, e.g. its serial
+    device's disconnection after the device exited: everything the device sent has been read by then, so the
+    run can stop there (a normal stop: the last cycles, the counters, the report) instead of waiting out an
+    idle timeout.  A process that has exited already is left alone; TimeoutError when ``text`` is not said
+    ``times`` times within ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while proc.stderr.count(text) < times and proc.p.poll() is None:
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"{text!r} not {times} times on the stderr of {proc.args[:4]}: {proc.err_lines[-10:]}")
+        time.sleep(0.02)
+    proc.signal(signal.SIGTERM)
+
+
 class Stopping(list):
     """The processes of a ``with`` block, each stopped by its own id at the end, whatever happens."""
 
