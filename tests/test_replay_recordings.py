@@ -114,16 +114,16 @@ def test_a_can_log_python_can_cannot_parse_is_named_with_its_frame(two_wheels, t
 
 
 def test_a_can_log_replays_to_the_rows_slipest_can_printed_live(two_wheels, tmp_path, capsys):
-    """can.player plays a recording (5x faster than driven) onto the CAN server while `slipest can`
+    """can.player plays a recording (10x faster than driven) onto the CAN server while `slipest can`
     listens; `slipest replay` of the same file must print the same rows, to the digit."""
     lost = int(2.6 * PERIOD / 1e-3)
-    log = write_can_log(tmp_path / "drive.blf", can_frames(two_wheels, time_scale=5.0, drop={0: [lost]},
+    log = write_can_log(tmp_path / "drive.blf", can_frames(two_wheels, time_scale=10.0, drop={0: [lost]},
                                                            unknown_every=300))
     host, port, stop = start_in_thread()
     est = player = None
     try:
         est = slipest_cmd("can", "-i", "socketcand", "-c", "vcan0", "--bus-option", f"host={host}",
-                          "--bus-option", f"port={port}", "--no-publish", "--idle-timeout", "3", "--duration", "90")
+                          "--bus-option", f"port={port}", "--no-publish", "--idle-timeout", "2", "--duration", "90")
         est.wait_err("listening on CAN bus", timeout=60)
         stop.wait_for_clients(1)
         player = subprocess.run([PY, "-m", "can.player", "-i", "socketcand", "-c", "vcan0", "--bus-kwargs",
