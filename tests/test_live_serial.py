@@ -270,7 +270,7 @@ def test_live_serial_survives_the_device_disconnecting_and_coming_back(tmp_path)
         time.sleep(0.3)
         est.signal(signal.SIGUSR1)  # counters on demand, without stopping
         assert dev.wait(60) == 0
-        stop_once_said(est, ": disconnected (", 2)  # the fault's outage, then the device's end
+        stop_once_said(est, "reopened", ": disconnected (")  # after the fault's outage, the device's end
         assert est.wait(60) == 0, est.stderr
     got = rows(est)
     assert got[(0, 2)]["quality"] != "ok"  # the cycle of the outage
