@@ -145,7 +145,7 @@ def test_firmware_sim_restarted_on_the_same_link_is_one_restart_not_a_loss(tmp_p
     import time
 
     from slipest.io.log_csv import read_log
-    from tests.hil_support import Stopping, firmware_sim, slipest_cmd, stop_once_said
+    from tests.hil_support import Stopping, firmware_sim, slipest_cmd
 
     link, rec, report = tmp_path / "imu", tmp_path / "run.csv", tmp_path / "live.json"
     device = ("serial", "--link", str(link), "--cycles", "6", "--speed", "16", "--noise", "0.01", "--settle", "0.05")
@@ -161,8 +161,6 @@ def test_firmware_sim_restarted_on_the_same_link_is_one_restart_not_a_loss(tmp_p
         time.sleep(1.5)  # 24 s of device time (the old rule took a restart for an outage beyond 16.4 s)
         second = procs.add(firmware_sim(*device, "--seed", "2"))
         assert second.wait(60) == 0
-        # the second run's end read (the disconnection after its first frame): not 10 s of idle-timeout later
-        stop_once_said(est, "the device restarted", ": disconnected (")
         assert est.wait(60) == 0, est.stderr
     wheel = json.loads(report.read_text())["estimation"]["wheel0"]
     log = read_log(rec)
