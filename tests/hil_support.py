@@ -100,6 +100,31 @@ class Proc:
         return "\n".join(self.err_lines)
 
 
+def said_in_order(text: str, *parts: str) -> bool:
+    """Whether ``parts`` stand in ``text`` in this order (each after the end of the previous one)."""
+    at = 0
+    for part in parts:
+        at = text.find(part, at)
+        if at < 0:
+            return False
+        at += len(part)
+    return True
+
+
+def stop_once_said(proc: Proc, *texts: str, timeout: float = 30.0) -> None:
+    """SIGTERM ``proc`` (a live run) once ``texts`` stand on its stderr in this order, e.g. its serial device's
+    disconnection after the device exited: everything the device sent has been read by then, so the run can
+    stop there (a normal stop: the last cycles, the counters, the report) instead of waiting out an idle
+    timeout.  A process that has exited already is left alone; TimeoutError when they are not said within
+    ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while not said_in_order(proc.stderr, *texts) and proc.p.poll() is None:
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"{texts!r} not in this order on the stderr of {proc.args[:4]}: {proc.err_lines[-10:]}")
+        time.sleep(0.02)
+    proc.signal(signal.SIGTERM)
+
+
 class Stopping(list):
     """The processes of a ``with`` block, each stopped by its own id at the end, whatever happens."""
 

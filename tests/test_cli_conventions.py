@@ -4,6 +4,7 @@ logging (-v/-q/--log-level), `--format jsonl` for live commands, and `--config r
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import logging
 import re
@@ -19,7 +20,7 @@ from slipest.cli import command
 from slipest.cli.config_file import ConfigFileError, file_keys, load_config_file
 from slipest.cli.main import main, parse_args
 from slipest.online import ESTIMATE_FIELDS
-from tests.hil_support import PY, Stopping, firmware_sim, serial_device, slipest_cmd
+from tests.hil_support import PY, Stopping, firmware_sim, serial_device, slipest_cmd, stop_once_said
 
 ROOT = Path(__file__).resolve().parents[1]
 #: A log line: date, time to the millisecond, level, logger, message.
@@ -173,9 +174,19 @@ def _serial_parser():
 def test_every_live_option_can_be_in_the_file():
     keys = file_keys(_serial_parser())
     for key in ("port", "baudrate", "legs", "wheel", "model", "method", "kS", "phiS", "phiD", "dphi", "record",
-                "format", "log-level", "quiet", "verbose", "duration", "stuck-samples", "use-reference"):
+                "format", "log-level", "quiet", "verbose", "duration", "stuck-samples", "use-reference",
+                "quiet-notice"):
         assert key in keys, key
     assert "config" not in keys and "help" not in keys
+
+
+def test_a_quiet_link_is_said_after_5_s_unless_told_otherwise():
+    from slipest.live.loop import run_live
+
+    parser = _serial_parser()
+    assert parser.parse_args(["/dev/ttyX"]).quiet_notice == 5.0 == inspect.signature(run_live).parameters[
+        "quiet_notice"].default
+    assert parser.parse_args(["/dev/ttyX", "--quiet-notice", "2"]).quiet_notice == 2.0
 
 
 # --- a live run from a config file, estimates as JSON lines -----------------------------------------------------
@@ -190,6 +201,7 @@ def test_live_serial_from_a_config_file_prints_json_lines_that_replay_agrees_wit
                       'idle-timeout = 3\nduration = 60\nlog-level = "WARNING"\n')
         est = procs.add(slipest_cmd("serial", "--config", str(cfg)))
         assert dev.wait(60) == 0, dev.stderr
+        stop_once_said(est, ": disconnected (")  # the device's end read (a WARNING): not 3 s of idle later
         assert est.wait(60) == 0, est.stderr
     rows = [json.loads(line) for line in est.lines]
     assert len(rows) >= 4 and all(tuple(r) == ("wheel",) + ESTIMATE_FIELDS and r["wheel"] == 1 for r in rows)
@@ -215,6 +227,8 @@ def test_format_none_prints_no_estimates(tmp_path):
         dev = procs.add(firmware_sim("serial", "--cycles", "3", "--speed", "16", "--noise", "0.01", "--linger", "0.3"))
         est = procs.add(slipest_cmd("serial", serial_device(dev), "--format", "none", "--idle-timeout", "3",
                                     "--report", str(tmp_path / "r.json")))
-        assert dev.wait(60) == 0 and est.wait(60) == 0, est.stderr
+        assert dev.wait(60) == 0
+        stop_once_said(est, ": disconnected (")  # the device's end read: not 3 s of idle later
+        assert est.wait(60) == 0, est.stderr
     assert est.lines == []
     assert json.loads((tmp_path / "r.json").read_text())["estimation"]["estimates"] >= 2

@@ -16,7 +16,7 @@ from slipest.cli import estimate_output
 from slipest.io.device_stream import WheelSamples, WheelStream
 from slipest.io.log_csv import read_log
 from slipest.live.recording import record_path
-from tests.hil_support import Stopping, firmware_sim, serial_device, slipest_cmd
+from tests.hil_support import Stopping, firmware_sim, serial_device, slipest_cmd, stop_once_said
 
 PERIOD = 2 * math.pi / (4 * 0.63)  # one leg cycle [s]
 
@@ -230,6 +230,7 @@ def test_live_serial_estimates_every_intact_cycle_and_never_a_damaged_one(tmp_pa
         est = procs.add(slipest_cmd("serial", port, "--cycles", "6", "--idle-timeout", "3", "--duration", "60",
                                     "--report", str(live_report)))
         assert dev.wait(60) == 0, dev.stderr
+        stop_once_said(est, ": disconnected (")  # the device's end read: the 6th cycle is closed at the stop
         assert est.wait(60) == 0, est.stderr
     got = rows(est)
     # a lost frame and two corrupted ones are short holes: bridged, the cycle estimated and marked 'repaired';
@@ -269,6 +270,7 @@ def test_live_serial_survives_the_device_disconnecting_and_coming_back(tmp_path)
         time.sleep(0.3)
         est.signal(signal.SIGUSR1)  # counters on demand, without stopping
         assert dev.wait(60) == 0
+        stop_once_said(est, "reopened", ": disconnected (")  # after the fault's outage, the device's end
         assert est.wait(60) == 0, est.stderr
     got = rows(est)
     assert got[(0, 2)]["quality"] != "ok"  # the cycle of the outage

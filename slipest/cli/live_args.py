@@ -91,7 +91,10 @@ def add_live_arguments(p: argparse.ArgumentParser, link: str, *, frames: bool = 
                    help="stop once every wheel seen has N leg cycles estimated or flagged")
     s.add_argument("--idle-timeout", type=float, default=None, metavar="S",
                    help="stop when no frame arrived for S seconds (after the first one); without a stop option "
-                   "the run goes on until Ctrl-C or SIGTERM, saying when no data came for 5 s")
+                   "the run goes on until Ctrl-C or SIGTERM, saying when no data came for 5 s (--quiet-notice)")
+    s.add_argument("--quiet-notice", type=float, default=5.0, metavar="S",
+                   help="say so when no frame arrived for S seconds, and when data comes back (default 5; again "
+                   "after each minute of silence)")
     t = p.add_argument_group("timing")
     t.add_argument("--sim-speed", type=float, default=None, metavar="S",
                    help="the device is firmware-sim on this host with --speed S: its timestamps are this host's "
@@ -235,7 +238,7 @@ def run_command(prog: str, args, source, live: LiveEstimation, started: str, vie
             stop = StopConditions(duration=args.duration, cycles=args.cycles, idle_timeout=args.idle_timeout)
             try:
                 result = run_live(source, live, stop, signals=signals, on_status=status,
-                                  on_notice=lambda text: say(text, logging.WARNING))
+                                  on_notice=lambda text: say(text, logging.WARNING), quiet_notice=args.quiet_notice)
             except FileExistsError as exc:  # the recording of a wheel that appeared later
                 raise SystemExit(f"{prog}: {exc}; use --overwrite") from None
             except OSError as exc:  # a recording that cannot be written (the run is closed: what was read is in)
