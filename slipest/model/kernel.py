@@ -359,11 +359,17 @@ def integrate_batch(params, dt, max_steps, res, rec):
     Two stances advance side by side in one loop (``_step`` each), so that the
     processor overlaps their dependency chains; each stance's arithmetic is
     exactly that of ``integrate_stance`` (same results to the last bit).
+    Partners are neighbours in the order of nominal stance duration
+    ``pi / (nL omega)`` (little left to run alone), and the pairs are dealt to
+    the threads longest and shortest alternately (equal shares of the work).
     """
     n_b = params.shape[0]
-    for pair in numba.prange((n_b + 1) // 2):
-        a = 2 * pair
-        b = min(a + 1, n_b - 1)
+    order = np.argsort(params[:, P_NL] * params[:, P_OMEGA])  # longest stance first
+    n_pairs = (n_b + 1) // 2
+    for p in numba.prange(n_pairs):
+        q = p // 2 if p % 2 == 0 else n_pairs - 1 - p // 2  # 0, last, 1, last - 1, ...
+        a = order[2 * q]
+        b = order[min(2 * q + 1, n_b - 1)]
         ka = _constants(params[a], dt)
         kb = _constants(params[b], dt)
         sa = _initial_state(params[a], max_steps)
