@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from slipest.model import kernel as K
-from slipest.model.params import StickSlipParams, param_grid
+from slipest.model.params import StickSlipParams, param_grid, param_matrix
 from slipest.model.stance import ModelFailure, simulate_batch, simulate_stance
 
 # docs/model.md section 4: (changes from defaults, Da [g], first break-away [rad]), given to 3 decimals
@@ -123,3 +123,31 @@ def test_halving_the_step_changes_da_by_less_than_half_a_percent():
 def test_invalid_parameters_are_rejected_with_the_reason(changes, message):
     with pytest.raises(ValueError, match=message):
         StickSlipParams(**changes)
+
+
+def test_batch_pairs_equal_single_stances_to_the_last_bit():
+    # integrate_batch runs stances two by two in one loop: every element must equal its own
+    # integrate_stance run, whatever its partner (other lengths, extensions on, failures, odd batch)
+    rng = np.random.default_rng(11)
+    n = 15
+    phid = rng.uniform(0.1, 0.4, n)
+    mat = param_matrix(param_grid(slip=rng.uniform(0, 0.5, n), kS=rng.uniform(400, 1500, n), phiD=phid,
+                                  phiS=phid + rng.uniform(0, 0.35, n), omega=rng.uniform(0.3, 1.2, n),
+                                  kappa=rng.choice([0.0, 0.3], n)))
+    mat[::3, K.P_BHC], mat[::3, K.P_NHC] = 20.0, 1.2
+    mat[1::4, K.P_VS], mat[1::4, K.P_VISC] = 0.01, 0.5
+    mat[2::5, K.P_RIPPLE_A], mat[2::5, K.P_RIPPLE_H] = 0.1, 2.0
+    max_steps = int(np.ceil(np.max(np.pi / mat[:, K.P_NL] / mat[:, K.P_OMEGA]) / (0.9 * 1e-4))) + 2
+    res = K.empty_results(n)
+    rec = np.full((n, max_steps, K.N_CHANNELS), np.nan)
+    K.integrate_batch(mat, 1e-4, max_steps, res, rec)
+    statuses = set()
+    for j in range(n):
+        r1 = K.empty_results(1)[0]
+        w1 = np.full((max_steps, K.N_CHANNELS), np.nan)
+        K.integrate_stance(mat[j], 1e-4, max_steps, r1, w1)
+        np.testing.assert_array_equal(res[j], r1)
+        np.testing.assert_array_equal(rec[j], w1)
+        statuses.add(int(r1[K.R_STATUS]))
+    assert K.STATUS_OK in statuses and K.STATUS_ILL_POSED in statuses  # both kinds of element were paired
+    assert len(set(res[:, K.R_N_STEPS])) > 2  # stances of different lengths were paired

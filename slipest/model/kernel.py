@@ -23,8 +23,13 @@ Coordinates x forward, z up; foot at ``(xC, 0)``, hub at ``(xH, zH)``;
     vXH = (1 - i) lS omega cos(th)        imposed hub horizontal speed [m/s]
 
 Integration is fixed-step semi-implicit Euler (velocity first, then position).
-The loop's pieces (leg force, friction law, sliding step, recording, results)
-are ``inline="always"`` helpers, compiled into the one loop.
+One step of the loop is ``_step`` (state tuple in, state tuple out); it and
+its pieces (leg force, friction law, sliding step, recording, results) are
+``inline="always"`` helpers, compiled into the loops that drive it: one stance
+(``integrate_stance``) or, in the batch, two stances side by side in one loop
+so that the processor overlaps their dependency chains (``integrate_batch``).
+Both perform the same floating-point operations in the same order, so their
+results agree to the last bit.
 
 Besides the nominal model the kernel carries the physical extensions that the
 sim-to-real diagnosis can switch on (all off at their neutral values):
@@ -107,6 +112,7 @@ RUNAWAY_LIMIT = 50.0 * 9.81
 
 
 _INLINE = dict(cache=True, inline="always", error_model="numpy")
+_RUNNING = 18  # index of the ``running`` flag in a stance state (see ``_initial_state``)
 
 
 @numba.njit(**_INLINE)
@@ -158,10 +164,11 @@ def _slide(vc, xc, fe, fn, mu, visc, inv_mf, dt):
 
 
 @numba.njit(**_INLINE)
-def _record(rec, n, th, az, stick, contact, fn, fe, fs, zh, xh, xc, vc):
-    """Row ``n`` of the waveform buffer (as many ``CH_*`` channels as it has)."""
+def _record(rec, row):
+    """Row ``n`` of the waveform buffer (as many ``CH_*`` channels as it has); ``n < 0``: none."""
+    n, th, az, stick, contact, fn, fe, fs, zh, xh, xc, vc = row
     n_ch = rec.shape[1]
-    if n < rec.shape[0] and n_ch > 0:
+    if 0 <= n < rec.shape[0] and n_ch > 0:
         r = rec[n]
         r[CH_THETA] = th
         r[CH_AZ] = az
@@ -182,6 +189,148 @@ def _write_results(res, az_max, az_min, breakaway, n_break, n_loss, status, stat
         res[j] = row[j]
 
 
+@numba.njit(**_INLINE)
+def _constants(p, dt):
+    """The per-stance constants of the step, from a parameter row (see ``_step``)."""
+    n_legs = p[P_NL]
+    omega0 = p[P_OMEGA]
+    return (
+        p[P_SLIP], p[P_KS], p[P_MUS], p[P_MUD], p[P_KAPPA], p[P_LS], omega0, p[P_G],
+        p[P_RIPPLE_A], p[P_RIPPLE_PH], n_legs * p[P_RIPPLE_H],  # ripple_k: ripples per radian of leg angle
+        math.pi / n_legs,  # th_end
+        1.0 / p[P_MH], 1.0 / p[P_MF],
+        # With a constant leg speed the angle grows by a fixed step: rotate
+        # (sin, cos) by it instead of calling sin and cos every step (the
+        # recurrence drifts by ~1e-12 over a stance; Da agrees to 1e-11).
+        math.sin(omega0 * dt), math.cos(omega0 * dt),
+        p[P_BHC], p[P_NHC], p[P_VS], p[P_SEXP], p[P_VISC],
+    )
+
+
+@numba.njit(**_INLINE)
+def _initial_state(p, max_steps):
+    """The state at midstance: static equilibrium, the spring carries the hub's weight.
+
+    ``(th, xh, xc, vc, zh, vz, s, c, stick, contact, az_max, az_min, breakaway,
+    n_break, n_loss, status, status_th, n, running)``.
+    """
+    zh = p[P_LS] - p[P_MH] * p[P_G] / p[P_KS]
+    running = 0.0 < math.pi / p[P_NL]
+    status = STATUS_OK
+    status_th = math.nan
+    if running and max_steps <= 0:
+        status = STATUS_MAX_STEPS
+        status_th = 0.0
+        running = False
+    return (0.0, 0.0, 0.0, 0.0, zh, 0.0, 0.0, 1.0, True, True, -1e300, 1e300, math.nan,
+            0, 0, status, status_th, 0, running)
+
+
+@numba.njit(**_INLINE)
+def _step(k, state, dt, max_steps):
+    """One integration step of a running stance: ``(new state, row)`` (state: see ``_initial_state``).
+
+    ``row``: the ``_record`` arguments of the step (the state at its start,
+    after the contact and friction updates), with ``n = -1`` if nothing is to be
+    recorded (a step that failed before its acceleration).
+
+    ``k``: the stance's constants (``_constants``). ``running`` turns False
+    when the stance reaches ``th_end`` or fails (``status`` tells why).
+    """
+    (slip, ks, mus, mud, kappa, ls, omega0, g, ripple_a, ripple_ph, ripple_k, th_end, inv_mh, inv_mf,
+     s_step, c_step, bhc, nhc, vs, sexp, visc) = k
+    (th, xh, xc, vc, zh, vz, s, c, stick, contact, az_max, az_min, breakaway,
+     n_break, n_loss, status, status_th, n, running) = state
+    constant_speed = ripple_a == 0.0
+    if constant_speed:
+        omega = omega0
+    else:
+        omega = _omega_at(omega0, ripple_a, ripple_ph, ripple_k, th)
+        s = math.sin(th)
+        c = math.cos(th)
+    vxh = (1.0 - slip) * ls * omega * c
+
+    if contact:
+        fs, fhx, fhz = _leg_force(xh, zh, xc, vxh, vc, vz, s, c, ls, ks, kappa, bhc, nhc)
+    else:
+        # contact loss: re-plant the unloaded foot on the leg line, in stick
+        xc = xh - zh * s / c
+        vc = 0.0
+        stick = True
+        fs, fhx, fhz = _leg_force(xh, zh, xc, vxh, vc, vz, s, c, ls, ks, kappa, bhc, nhc)
+    fn = fhz
+    fe = -fhx
+
+    if contact and fn <= 0.0:
+        n_loss += 1
+        if kappa == 0.0:
+            # The thesis model as written has no rule for a lost contact:
+            # the leg force lies along the leg, FE/FN = tan(th) has left the
+            # friction cone, and the foot can never be held again (ladder
+            # problem). Re-planting belongs to the well-posed reading only.
+            status = STATUS_ILL_POSED
+        contact = False
+    elif not contact and fn > 0.0:
+        contact = True
+
+    row = (-1, th, 0.0, stick, contact, fn, fe, fs, zh, xh, xc, vc)
+    if status == STATUS_OK:
+        if contact:
+            if stick and abs(fe) > mus * fn:
+                stick = False
+                n_break += 1
+                if n_break == 1:
+                    breakaway = th
+            if not stick:
+                mu = _friction_coefficient(vc, mus, mud, vs, sexp)
+                stick, vc, xc = _slide(vc, xc, fe, fn, mu, visc, inv_mf, dt)
+            az = fhz * inv_mh - g
+        else:
+            az = -g
+
+        row = (n, th, az, stick, contact, fn, fe, fs, zh, xh, xc, vc)
+
+        if az > az_max:
+            az_max = az
+        if az < az_min:
+            az_min = az
+        if abs(az) > RUNAWAY_LIMIT:
+            status = STATUS_RUNAWAY
+        else:
+            vz += az * dt
+            zh += vz * dt
+            xh += vxh * dt
+            th += omega * dt
+            if constant_speed:
+                s, c = s * c_step + c * s_step, c * c_step - s * s_step
+        n += 1
+        if status == STATUS_OK:
+            if zh < 0.0:
+                status = STATUS_BELOW_GROUND
+            elif th < th_end and n >= max_steps:
+                status = STATUS_MAX_STEPS
+    if status != STATUS_OK:
+        status_th = th
+        running = False
+    else:
+        running = th < th_end
+    return (th, xh, xc, vc, zh, vz, s, c, stick, contact, az_max, az_min, breakaway,
+            n_break, n_loss, status, status_th, n, running), row
+
+
+@numba.njit(**_INLINE)
+def _finish(k, state, res):
+    """Write the results row of a stance that stopped running (see ``R_*``)."""
+    kappa = k[4]
+    (th, xh, xc, vc, zh, vz, s, c, stick, contact, az_max, az_min, breakaway,
+     n_break, n_loss, status, status_th, n, running) = state
+    if kappa == 0.0 and status == STATUS_OK and n_break > 0 and not stick:
+        # literal model: broke away at th = phiS and was never held again
+        status = STATUS_ILL_POSED
+        status_th = th
+    _write_results(res, az_max, az_min, breakaway, n_break, n_loss, status, status_th, n)
+
+
 @numba.njit(cache=True, error_model="numpy")
 def integrate_stance(p, dt, max_steps, res, rec):
     """Integrate one propulsive half-stance, midstance (th = 0) to th = pi/nL.
@@ -192,129 +341,12 @@ def integrate_stance(p, dt, max_steps, res, rec):
     ``channels > 0`` (see ``CH_*``). The state is recorded at the start of
     each step, so row 0 is the static equilibrium at midstance.
     """
-    slip = p[P_SLIP]
-    ks = p[P_KS]
-    mus = p[P_MUS]
-    mud = p[P_MUD]
-    kappa = p[P_KAPPA]
-    mh = p[P_MH]
-    ls = p[P_LS]
-    omega0 = p[P_OMEGA]
-    n_legs = p[P_NL]
-    g = p[P_G]
-    ripple_a = p[P_RIPPLE_A]
-    ripple_ph = p[P_RIPPLE_PH]
-    ripple_k = n_legs * p[P_RIPPLE_H]  # ripples per radian of leg angle
-    th_end = math.pi / n_legs
-
-    # static equilibrium at midstance: the spring carries the hub's weight
-    th = 0.0
-    xh = 0.0
-    xc = 0.0
-    vc = 0.0
-    zh = ls - mh * g / ks
-    vz = 0.0
-    vxh = 0.0
-    stick = True
-    contact = True
-
-    az_max = -1e300
-    az_min = 1e300
-    breakaway = math.nan
-    n_break = 0
-    n_loss = 0
-    status = STATUS_OK
-    status_th = math.nan
-    n = 0
-    inv_mh = 1.0 / mh
-    inv_mf = 1.0 / p[P_MF]
-    # With a constant leg speed the angle grows by a fixed step: rotate
-    # (sin, cos) by it instead of calling sin and cos every step (the
-    # recurrence drifts by ~1e-12 over a stance; Da agrees to 1e-11).
-    constant_speed = ripple_a == 0.0
-    s = 0.0
-    c = 1.0
-    s_step = math.sin(omega0 * dt)
-    c_step = math.cos(omega0 * dt)
-    while th < th_end:
-        if n >= max_steps:
-            status = STATUS_MAX_STEPS
-            status_th = th
-            break
-        if constant_speed:
-            omega = omega0
-        else:
-            omega = _omega_at(omega0, ripple_a, ripple_ph, ripple_k, th)
-            s = math.sin(th)
-            c = math.cos(th)
-        vxh = (1.0 - slip) * ls * omega * c
-
-        # contact loss: re-plant the unloaded foot on the leg line, in stick
-        if not contact:
-            xc = xh - zh * s / c
-            vc = 0.0
-            stick = True
-
-        fs, fhx, fhz = _leg_force(xh, zh, xc, vxh, vc, vz, s, c, ls, ks, kappa, p[P_BHC], p[P_NHC])
-        fn = fhz
-        fe = -fhx
-
-        if contact and fn <= 0.0:
-            n_loss += 1
-            if kappa == 0.0:
-                # The thesis model as written has no rule for a lost contact:
-                # the leg force lies along the leg, FE/FN = tan(th) has left the
-                # friction cone, and the foot can never be held again (ladder
-                # problem). Re-planting belongs to the well-posed reading only.
-                status = STATUS_ILL_POSED
-                status_th = th
-                break
-            contact = False
-        elif not contact and fn > 0.0:
-            contact = True
-
-        if contact:
-            if stick and abs(fe) > mus * fn:
-                stick = False
-                n_break += 1
-                if n_break == 1:
-                    breakaway = th
-            if not stick:
-                mu = _friction_coefficient(vc, mus, mud, p[P_VS], p[P_SEXP])
-                stick, vc, xc = _slide(vc, xc, fe, fn, mu, p[P_VISC], inv_mf, dt)
-            az = fhz * inv_mh - g
-        else:
-            az = -g
-
-        _record(rec, n, th, az, stick, contact, fn, fe, fs, zh, xh, xc, vc)
-
-        if az > az_max:
-            az_max = az
-        if az < az_min:
-            az_min = az
-        if abs(az) > RUNAWAY_LIMIT:
-            status = STATUS_RUNAWAY
-            status_th = th
-            n += 1
-            break
-
-        vz += az * dt
-        zh += vz * dt
-        xh += vxh * dt
-        th += omega * dt
-        if constant_speed:
-            s, c = s * c_step + c * s_step, c * c_step - s * s_step
-        n += 1
-        if zh < 0.0:
-            status = STATUS_BELOW_GROUND
-            status_th = th
-            break
-
-    if kappa == 0.0 and status == STATUS_OK and n_break > 0 and not stick:
-        # literal model: broke away at th = phiS and was never held again
-        status = STATUS_ILL_POSED
-        status_th = th
-    _write_results(res, az_max, az_min, breakaway, n_break, n_loss, status, status_th, n)
+    k = _constants(p, dt)
+    st = _initial_state(p, max_steps)
+    while st[_RUNNING]:
+        st, row = _step(k, st, dt, max_steps)
+        _record(rec, row)
+    _finish(k, st, res)
 
 
 @numba.njit(cache=True, parallel=True, error_model="numpy")
@@ -323,9 +355,42 @@ def integrate_batch(params, dt, max_steps, res, rec):
 
     ``res``: ``(B, N_RESULTS)`` output. ``rec``: ``(B, n, channels)`` waveform
     buffer (``n = 0`` or ``channels = 0`` records nothing).
+
+    Two stances advance side by side in one loop (``_step`` each), so that the
+    processor overlaps their dependency chains; each stance's arithmetic is
+    exactly that of ``integrate_stance`` (same results to the last bit).
+    Partners are neighbours in the order of nominal stance duration
+    ``pi / (nL omega)`` (little left to run alone), and the pairs are dealt to
+    the threads longest and shortest alternately (equal shares of the work).
     """
-    for b in numba.prange(params.shape[0]):
-        integrate_stance(params[b], dt, max_steps, res[b], rec[b])
+    n_b = params.shape[0]
+    order = np.argsort(params[:, P_NL] * params[:, P_OMEGA])  # longest stance first
+    n_pairs = (n_b + 1) // 2
+    for p in numba.prange(n_pairs):
+        q = p // 2 if p % 2 == 0 else n_pairs - 1 - p // 2  # 0, last, 1, last - 1, ...
+        a = order[2 * q]
+        b = order[min(2 * q + 1, n_b - 1)]
+        ka = _constants(params[a], dt)
+        kb = _constants(params[b], dt)
+        sa = _initial_state(params[a], max_steps)
+        sb = _initial_state(params[b], max_steps)
+        rec_a = rec[a]
+        rec_b = rec[b]
+        if b != a:
+            while sa[_RUNNING] and sb[_RUNNING]:
+                sa, row = _step(ka, sa, dt, max_steps)
+                _record(rec_a, row)
+                sb, row = _step(kb, sb, dt, max_steps)
+                _record(rec_b, row)
+            while sb[_RUNNING]:
+                sb, row = _step(kb, sb, dt, max_steps)
+                _record(rec_b, row)
+        while sa[_RUNNING]:
+            sa, row = _step(ka, sa, dt, max_steps)
+            _record(rec_a, row)
+        _finish(ka, sa, res[a])
+        if b != a:
+            _finish(kb, sb, res[b])
 
 
 def empty_results(batch: int) -> np.ndarray:
