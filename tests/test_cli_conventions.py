@@ -189,6 +189,13 @@ def test_a_quiet_link_is_said_after_5_s_unless_told_otherwise():
     assert parser.parse_args(["/dev/ttyX", "--quiet-notice", "2"]).quiet_notice == 2.0
 
 
+def test_a_quiet_notice_that_is_not_a_positive_time_is_refused_before_the_port_is_opened():
+    r = subprocess.run([PY, "-m", "slipest.cli.main", "serial", "/dev/ttyNONE", "--quiet-notice", "0"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode != 0
+    assert "--quiet-notice must be a number of seconds > 0" in r.stderr and "ttyNONE" not in r.stderr
+
+
 # --- a live run from a config file, estimates as JSON lines -----------------------------------------------------
 
 

@@ -224,6 +224,8 @@ def run_command(prog: str, args, source, live: LiveEstimation, started: str, vie
         if view is not None:
             view.notice(f"{prog}: {text}", logging.getLevelName(level).lower())
 
+    if not args.quiet_notice > 0:
+        raise SystemExit(f"{prog}: --quiet-notice must be a number of seconds > 0, not {args.quiet_notice}")
     try:
         try:
             source.start(wait_open=args.wait_open)
