@@ -48,7 +48,11 @@ def test_a_read_only_package_caches_in_the_first_writable_place(tmp_path, unwrit
 def test_configure_sets_the_environment_and_a_loaded_numba(monkeypatch, tmp_path, unwritable):
     import numba.core.config as config
 
-    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    # set, then deleted, through monkeypatch: the variable's state before the test is recorded and comes back after
+    # it, whatever configure() writes into os.environ (delenv of an unset variable records nothing, and the cache
+    # directory configure() sets here leaked into every later test's subprocesses: each compiled the kernels again)
+    monkeypatch.setenv("NUMBA_CACHE_DIR", "unset-after-the-test")
+    monkeypatch.delenv("NUMBA_CACHE_DIR")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
     monkeypatch.setattr(numba_cache, "PACKAGE_DIR", unwritable)
     monkeypatch.setattr(config, "CACHE_DIR", config.CACHE_DIR)
@@ -56,6 +60,11 @@ def test_configure_sets_the_environment_and_a_loaded_numba(monkeypatch, tmp_path
     assert numba_cache.configure() == want
     assert os.environ["NUMBA_CACHE_DIR"] == want and config.CACHE_DIR == want
     assert numba_cache.configure() is None  # now set: left alone
+
+
+def test_the_cache_directory_a_test_configured_is_not_left_to_the_next_ones():
+    # runs after test_configure_sets_the_environment_and_a_loaded_numba (file order): its NUMBA_CACHE_DIR is gone
+    assert "slipest/numba" not in os.environ.get("NUMBA_CACHE_DIR", "")
 
 
 PROBE = '''
