@@ -494,6 +494,9 @@ def test_an_angle_effect_named_by_the_diagnosis_is_also_tried_removed_from_theta
     (removed,) = _removal_candidates([skew], [Log(), Log()], 4)
     assert removed.named and removed.shrink == 0.97 and removed.effects == skew.effects
     assert removed.angle_offset == pytest.approx(0.1) and removed.disturbance is None and removed.corrects_samples
+    # a fitted offset of exactly zero removes nothing: no candidate that would be the effect's own batch again
+    zero = Candidate("angle_offset", ({"name": "angle_offset", "offset": 0.0},), 0.3, "named in b", named=True)
+    assert _removal_candidates([zero], [Log(), Log()], 4) == []
 
 
 def test_a_learnt_disturbance_is_the_band_limited_waveform_of_its_bin_averages():

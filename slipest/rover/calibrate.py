@@ -277,8 +277,9 @@ def _removal_candidates(cands, logs, n_legs: int) -> list[Candidate]:
         origin = f"{c.origin}; removed from the samples"
         offset = effect_angle_offset(c.effects, omega, n_legs)
         if offset is not None:
-            out.append(Candidate(f"{c.label} removed", c.effects, c.kappa, origin, c.named, c.shrink,
-                                 angle_offset=offset))
+            if offset != 0.0:  # (an offset of zero removes nothing: the effect's candidate is the shipped model)
+                out.append(Candidate(f"{c.label} removed", c.effects, c.kappa, origin, c.named, c.shrink,
+                                     angle_offset=offset))
             continue
         wave = effect_disturbance(c.effects, omega, n_legs)
         if wave is not None:
