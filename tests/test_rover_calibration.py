@@ -398,6 +398,25 @@ def test_the_interval_scale_is_what_makes_held_out_errors_covered_at_95_percent_
     assert few["scale"] == 1.0 and few["coverage_before"] == 0.0
 
 
+def test_the_covariance_factor_is_the_held_out_scatter_and_two_cycles_far_off_do_not_set_it():
+    from slipest.rover.calibrate import covariance_factor
+
+    rng = np.random.default_rng(9)
+    d = 14
+    explained = rng.chisquare(d, 4000)  # held-out cycles the model explains: no widening
+    assert covariance_factor(explained, d) == pytest.approx(1.0, abs=0.05)
+    assert covariance_factor(3.0 * explained, d) == pytest.approx(3.0, rel=0.05)  # scatter 3x the model's
+    assert covariance_factor(0.5 * explained, d) == 1.0  # never narrowed
+    # 20 held-out cycles, two of them far off (dev seed 4's rising impact: 357 and 3380): the mean per
+    # feature would widen every cycle's covariance more than 10x; the median keeps the scatter of the rest
+    twenty = rng.chisquare(d, 20)
+    far = np.concatenate([twenty[:18], [357.0, 3380.0]])
+    assert np.mean(far) / d > 10.0
+    assert covariance_factor(far, d) < 1.6
+    assert covariance_factor(np.concatenate([far, [np.nan]]), d) == covariance_factor(far, d)
+    assert covariance_factor(np.zeros(0), d) == 1.0
+
+
 def test_an_additive_effects_waveform_is_what_the_simulator_adds_and_other_effects_have_none():
     """A touchdown impact adds to az what does not depend on az: its table over the leg phase, removed from a
     simulated stream with it, leaves the stream without it (but the sample on each touchdown's jump); filters,

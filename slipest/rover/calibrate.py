@@ -34,8 +34,9 @@ its own unknown soil, and the rover's known hardware
    kept only when it improves the blind estimates of runs it was not fitted
    on (leave one run out; with one run, held-out slip levels);
 5. widens the covariance by what the held-out slip levels still scatter
-   beyond it (their mean squared whitened residual per feature, each log's
-   soil fitted on its other levels);
+   beyond it (:func:`covariance_factor`: the median of their squared
+   whitened residuals against a chi-square's, each log's soil fitted on its
+   other levels);
 6. scales the estimator's standard deviations so that the blind estimates
    of held-out runs (each run estimated without what was fitted on it)
    cover 95 % of their reference slips, never below 1 (:func:`_interval_scale`);
@@ -57,6 +58,7 @@ from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
+from scipy.stats import chi2
 
 from slipest.diagnosis.fit import Geometry
 from slipest.rover.discrepancy import Discrepancy
@@ -385,17 +387,35 @@ def _heldout_split(logs):
     return held, [lg.subset(~h) for lg, h in zip(logs, held)]
 
 
-def _feature_misfit(model, logs) -> float:
-    """Mean squared whitened residual per feature of the logs' held-out cycles (``TestbedLog.heldout_levels``), each
-    log's soil fitted on its training cycles (1: explained within the model's scatter)."""
+def _heldout_sq(model, logs) -> np.ndarray:
+    """Each held-out cycle's squared whitened residual ``(n,)`` (:func:`whitened_sq`; the held-out cycles are
+    each log's ``TestbedLog.heldout_levels``, its soil fitted on its training cycles)."""
     sq = []
     for lg in logs:
         h = lg.heldout_levels()
         soil = log_soil(model, lg, keep=~h)
         ho = lg.subset(h)
         sq.append(whitened_sq(model, ho, log_residuals(model, ho, soil)))
-    sq = np.concatenate(sq) if sq else np.zeros(0)
+    return np.concatenate(sq) if sq else np.zeros(0)
+
+
+def _feature_misfit(model, logs) -> float:
+    """Mean squared whitened residual per feature of the logs' held-out cycles (:func:`_heldout_sq`; 1:
+    explained within the model's scatter). The report's figure; NaN without held-out cycles."""
+    sq = _heldout_sq(model, logs)
     return float(np.mean(sq) / len(model.features)) if sq.size else math.nan
+
+
+def covariance_factor(sq, n_features: int) -> float:
+    """The factor (at least 1) on the feature covariance that the held-out cycles' squared whitened residuals
+    ``sq`` call for: their median over the median of a chi-square with ``n_features`` degrees of freedom, so
+    that one or two cycles far off the model (a log's glitch, a soil the correction missed) do not widen
+    every cycle's likelihood; what they cost in coverage is the interval scale's to cover. 1 without cycles."""
+    sq = np.asarray(sq, dtype=float)
+    sq = sq[np.isfinite(sq)]
+    if not sq.size:
+        return 1.0
+    return max(1.0, float(np.median(sq) / chi2.ppf(0.5, n_features)))
 
 
 def _testbed_layer(model: RoverSurrogate, logs, options: CalibrateOptions, n_legs: int) -> dict:
@@ -522,7 +542,7 @@ def calibrate(runs, geometry: Geometry = Geometry(), options: CalibrateOptions =
         model = with_discrepancy(model, layer["discrepancy"])
     soils = [log_soil(model, lg) for lg in logs]
     # held-out scatter beyond the model's covariance: soils from the training levels, residuals of the rest
-    factor = max(1.0, _feature_misfit(model, logs))
+    factor = covariance_factor(_heldout_sq(model, logs), len(model.features))
     noise_smooth = float(np.median([lg.noise_smooth for lg in logs]))
     omega = float(np.median([lg.omega for lg in logs]))
     widen = (factor - 1.0) * model.cov(omega, noise_smooth)
@@ -574,5 +594,5 @@ def _unexplained(model, logs, soils: list[LogSoil], report: dict) -> dict:
             "largest_feature_bias": [{"feature": model.features[j], "bias_sd": float(bias[j])} for j in order[:3]]}
 
 
-__all__ = ["CalibrateOptions", "Calibration", "Candidate", "MIN_GAIN", "Progress", "TestbedRun", "calibrate",
+__all__ = ["CalibrateOptions", "Calibration", "Candidate", "MIN_GAIN", "Progress", "TestbedRun", "calibrate", "covariance_factor",
            "diagnose_runs", "scale_for_coverage"]
