@@ -210,6 +210,35 @@ def test_fit_parametrisation_maps_to_the_catalog_and_predicts_the_stream(effect,
     assert abs(bias[0]) < 0.01
 
 
+def test_a_waveform_common_to_every_cycle_is_profiled_out_of_the_nominal_fit():
+    """Cycles with one waveform added to every cycle: at the true soil the common-waveform objective sees only
+    the noise, where the constant-bias objective sees the waveform, and the profiled waveform is the one added
+    (up to a constant). An effect's fit cannot take it."""
+    from dataclasses import replace
+
+    soil = StickSlipParams()
+    cs = _cycles(_log(np.repeat([0.1, 0.25, 0.4], 3), noise=0.005))
+    phase = GRID.bin_centres
+    wave = 2.0 * np.sin(7.0 * phase) * np.exp(-3.0 * (phase + 0.8))  # [m/s^2], locked to the leg phase
+    moved = replace(cs, y=cs.y + wave)
+    idx = np.arange(len(cs.slip))
+    truth = {"kS": soil.kS, "phiS": soil.phiS, "dphi": soil.phiS - soil.phiD, "kappa": soil.kappa}
+    plain, common = Evaluator(moved, idx, None, Geometry()), Evaluator(moved, idx, None, Geometry(), common=True)
+    clean, clean_common = Evaluator(cs, idx, None, Geometry()), Evaluator(cs, idx, None, Geometry(), common=True)
+    z = clean.z_of(truth)[None]
+    mse_common, bias = common.mse(z)
+    assert mse_common[0] == pytest.approx(clean_common.mse(z)[0][0], rel=1e-9)  # the waveform costs nothing
+    assert clean_common.mse(z)[0][0] <= clean.mse(z)[0][0]  # a constant is one common waveform
+    assert plain.mse(z)[0][0] > clean.mse(z)[0][0] + 0.5 * np.var(wave)
+    pred, _ = common.predict(z)
+    found = common.common_waveform(pred)[0]
+    base = clean_common.common_waveform(pred)[0]  # what the clean cycles leave: noise and the model's own bias
+    assert np.sqrt(np.mean((found - base - wave) ** 2)) < 1e-9
+    assert bias[0] == pytest.approx(np.mean(found))
+    with pytest.raises(ValueError, match="nominal"):
+        Evaluator(moved, idx, "imu_lowpass", Geometry(), common=True)
+
+
 def test_effects_at_their_fit_starts_predict_the_nominal_model():
     """Where an effect's fit starts (FitParam.start) it is off: the nominal model's prediction, for every effect
     that has such a value (Stribeck has none; the low-pass starts at its highest cut-off, not off)."""

@@ -191,7 +191,10 @@ def descriptor_objective(ev: Evaluator, space: SearchSpace, dt: float) -> Callab
         out = np.empty(len(U))
         for i in range(0, len(U), 256):
             pred, ok = ev.predict(space.z(U[i : i + 256]), dt)
-            dd = descriptors(np.nan_to_num(pred), grid)
+            pred = np.nan_to_num(pred)
+            if ev.common:  # the data's descriptors against the prediction with the common waveform added
+                pred = pred + ev.common_waveform(pred)[:, None, :]
+            dd = descriptors(pred, grid)
             m = np.sum(np.mean((dd - d_data[None]) ** 2, axis=2) * wg[None], axis=1)
             out[i : i + 256] = np.where(ok & np.isfinite(m), m, 1e6)
         return out
@@ -313,7 +316,7 @@ def refine_stage(f: Callable, cand: np.ndarray, space: SearchSpace, rng: np.rand
 
 def fit(cycles: CycleSet, idx, effect: str | None, geometry: Geometry, *, seed=0, budget: FitBudget = FitBudget(),
         init: list[dict] | None = None, fixed: dict | None = None, bias0: float = 0.0,
-        progress: Callable[[], None] | None = None) -> FitResult:
+        progress: Callable[[], None] | None = None, common: bool = False) -> FitResult:
     """Fit soil (+ ``effect``) to the cycles ``idx``; the objective is the mean squared waveform residual.
 
     1. :func:`descriptor_stage` at ``DT_COARSE`` on at most
@@ -325,13 +328,17 @@ def fit(cycles: CycleSet, idx, effect: str | None, geometry: Geometry, *, seed=0
     3. :func:`refine_stage` at ``DT_FINE``.
 
     ``fixed``: parameter values held fixed (not searched). ``progress()`` is
-    called once per generation.
+    called once per generation. ``common``: the nominal model (``effect``
+    None) fitted with a waveform common to every cycle profiled out
+    (:class:`~slipest.diagnosis.predict.Evaluator`'s ``common``; the result's
+    ``bias`` is that waveform's mean), as a phase-locked disturbance is learnt
+    (:func:`slipest.rover.waveform.learn_disturbance`).
     """
     idx = np.asarray(idx, dtype=np.int64)
-    ev = Evaluator(cycles, idx, effect, geometry, bias0=bias0, solve_linear=True)
+    ev = Evaluator(cycles, idx, effect, geometry, bias0=bias0, solve_linear=True, common=common)
     levels = _spread_levels(cycles.slip[idx], COARSE_LEVELS)
     ev1 = Evaluator(cycles, idx[np.isin(cycles.slip[idx], levels)], effect, geometry, bias0=bias0,
-                    solve_linear=True)
+                    solve_linear=True, common=common)
     rng = np.random.default_rng(seed)
     space = SearchSpace(ev, fixed)
     dt_coarse, dt_search = ev.model.search_steps or (DT_COARSE, DT_SEARCH)

@@ -30,7 +30,8 @@ catalog effect, :mod:`slipest.model.effects`) on a set of logged cycles:
    (:meth:`~slipest.model.effects.base.Effect.sense`, by default plain
    :func:`bin_average_batch`);
 4. :meth:`Evaluator.mse`: the residual against the logged bin means after
-   the best constant bias.
+   the best constant bias (with ``common``: after the best waveform common
+   to every cycle, a phase-locked disturbance profiled out).
 
 Everything is pure numpy/numba; nothing here knows about files.
 """
@@ -254,7 +255,11 @@ class Evaluator:
     rest is fitted in closed form; solve_linear: the effect's ``linear`` fit
     parameters are solved in closed form (their values, per candidate, in
     :attr:`last_linear` after each prediction) instead of taken from the
-    candidates.
+    candidates; common: the residual is taken after the best waveform common
+    to every cycle (:meth:`common_waveform`, one value per bin: a disturbance
+    locked to the leg phase that the soil and ``kappa`` must not absorb)
+    instead of the best constant bias; only for the nominal model (``effect``
+    None).
 
     Cycles with the same leg speed and slip (and, for effects with memory
     across the cycle boundary, the same previous slip and previous leg
@@ -268,9 +273,12 @@ class Evaluator:
     """
 
     def __init__(self, cycles: CycleSet, idx, effect: str | None, geometry: Geometry, bias0: float = 0.0,
-                 solve_linear: bool = False):
+                 solve_linear: bool = False, common: bool = False):
+        if common and effect is not None:
+            raise ValueError("a common waveform is profiled out of the nominal model's fit only (effect None)")
         self.cycles = cycles
         self.solve_linear = solve_linear
+        self.common = bool(common)
         self.last_linear: dict = {}
         self.noise_sigma = float(np.sqrt(np.mean(cycles.noise**2))) if np.all(np.isfinite(cycles.noise)) else 0.0
         self.idx = np.asarray(idx, dtype=np.int64)
@@ -399,12 +407,23 @@ class Evaluator:
         pred, ok = self.predict(Z, dt)
         r = self.g_mean[None] - pred  # (P, G, nb)
         w = self.g_n[None, :, None]
-        nb = self.grid.nb
-        bias = np.sum(w * r, axis=(1, 2)) / (nb * self.g_n.sum())
-        sse = np.sum(w * (r - bias[:, None, None]) ** 2, axis=(1, 2)) + self.within
+        if self.common:
+            wave = self.common_waveform(pred)
+            bias = np.mean(wave, axis=1)
+            sse = np.sum(w * (r - wave[:, None, :]) ** 2, axis=(1, 2)) + self.within
+        else:
+            bias = np.sum(w * r, axis=(1, 2)) / (self.grid.nb * self.g_n.sum())
+            sse = np.sum(w * (r - bias[:, None, None]) ** 2, axis=(1, 2)) + self.within
         mse = sse / self.n_values
         mse = np.where(ok & np.isfinite(mse), mse, np.inf)
         return mse, bias
+
+    def common_waveform(self, pred: np.ndarray) -> np.ndarray:
+        """The waveform ``(P, nb)`` [m/s^2] common to every cycle that best explains what the predictions
+        ``pred (P, G, nb)`` leave of the logged bin means: their residuals' mean over the cycles (bias
+        included)."""
+        w = self.g_n[None, :, None]
+        return np.sum(w * (self.g_mean[None] - pred), axis=1) / self.g_n.sum()
 
     # --- the effect's prediction context (slipest.model.effects.base.PredictionContext) -----------------
     def speed_groups(self, previous: bool = False):

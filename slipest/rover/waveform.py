@@ -11,11 +11,15 @@ rover's model does when it has one
 :class:`slipest.online.SlipEstimator` to every cycle).
 
 :func:`learn_disturbance` estimates it from a diagnosed log, on its
-training cycles only: the mean over them of the binned ``az`` minus the
-nominal model's prediction; because the nominal fit absorbed part of the
-disturbance into its soil and ``kappa``, the nominal model is refitted on
-the cycles with the disturbance taken out and what is still left is added,
-``iterations`` times. The held-out cycles (slip levels never fitted) then
+training cycles only: the nominal model is refitted with a waveform common
+to every cycle profiled out (``fit(..., common=True)``: the soil and
+``kappa`` are then fitted to how the cycles differ from one slip to another,
+which a disturbance locked to the phase does not change), and the
+disturbance is the training cycles' mean residual, the binned ``az`` minus
+that model's prediction. (Refitting the nominal model alternately with
+the mean residual taken out settles at wrong points where the soil and
+``kappa`` keep part of a large disturbance: ``docs/calibration.md``.)
+The held-out cycles (slip levels never fitted) then
 say whether it explains the log: their gap (:mod:`slipest.diagnosis.rank`)
 with the disturbance removed and the refitted model, against the nominal
 model's, as the diagnosis judges a catalog effect.
@@ -156,27 +160,22 @@ def effect_angle_offset(specs, omega: float, n_legs: int) -> float | None:
     return total if math.isfinite(total) and abs(total) < math.pi / n_legs else None
 
 
-def learn_disturbance(diagnosis, geometry, iterations: int = 2, seed: int = 0, budget=None) -> LearntDisturbance:
+def learn_disturbance(diagnosis, geometry, seed: int = 0, budget=None) -> LearntDisturbance:
     """The disturbance of a diagnosed log (:class:`~slipest.diagnosis.run.Diagnosis`), learnt on its training
-    cycles and judged on its held-out ones (see the module docstring)."""
+    cycles and judged on its held-out ones (see the module docstring). ``budget``: the nominal refit's
+    (:class:`~slipest.diagnosis.fit.FitBudget`; default half the diagnosis's full one)."""
     from slipest.diagnosis.fit import FitBudget, evaluate, fit
     from slipest.diagnosis.rank import gap_of
 
     cycles = diagnosis.cycles
     train, test = diagnosis.split.train, diagnosis.split.test
     budget = budget or FitBudget().scaled(0.5)
-    nominal = diagnosis.nominal
-    total = np.zeros(cycles.y.shape[1])
-    shifted = cycles
-    for it in range(iterations + 1):
-        pred = evaluate(shifted, train, nominal, geometry)["pred"]
-        r = np.mean(shifted.y[train] - pred, axis=0)
-        total += r - np.mean(r)
-        shifted = replace(cycles, y=cycles.y - total)
-        if it < iterations:
-            nominal = fit(shifted, train, None, geometry, seed=seed + it, budget=budget, init=[nominal.values])
-    var_test = diagnosis.noise.var_bin[test]
-    gap = gap_of(evaluate(shifted, test, nominal, geometry)["resid"], var_test)
+    nominal = fit(cycles, train, None, geometry, seed=seed, budget=budget, init=[diagnosis.nominal.values],
+                  common=True)
+    r = np.mean(cycles.y[train] - evaluate(cycles, train, nominal, geometry)["pred"], axis=0)
+    total = r - np.mean(r)
+    shifted = replace(cycles, y=cycles.y - total)
+    gap = gap_of(evaluate(shifted, test, nominal, geometry)["resid"], diagnosis.noise.var_bin[test])
     return LearntDisturbance(cycles.grid.bin_centres, total, float(diagnosis.gap_nominal), float(gap),
                              float(nominal.values["kappa"]))
 
