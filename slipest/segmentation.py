@@ -54,7 +54,11 @@ How the stream is interpreted
   unusable samples and the rows missing from the span (a time step of
   ``m`` median steps is ``m - 1`` missing rows, dropped samples included).
   A theta step larger than ``max_dtheta`` flags ``"gap"`` (``None``: a tenth
-  of the window width).
+  of the window width). A step that large which lands in a later cycle lands
+  there as a first sample does: less than 1e-4 rad before a cycle's start
+  (a device's float32 angle after a restart), it starts that cycle, and the
+  cycle it would otherwise open with this one sample at its very end is
+  counted skipped (``cycles_skipped``), not emitted.
 * **Time.** A timestamp not after the previous one (backwards or duplicated)
   is counted; a window containing one is flagged ``"time"``.
 * **Stops.** No cycle can be emitted while theta does not advance. A window
@@ -357,6 +361,9 @@ def _advance(st, buf, t, az, theta, i, clip_values):
                     s.tmax = th
                 if s.tmax - s.mk >= s.close_ph:
                     knew = math.floor((s.tmax + s.h) * s.invP)
+                    if knew > s.k and s.has_prev and th - s.prev_th > s.max_dtheta:
+                        # a jump lands as a first sample does: a hair before a cycle's start, in that cycle
+                        knew = math.floor((s.tmax + s.h + _SYNC_EPS) * s.invP)
                     if knew > s.k:
                         if not s.has_post:
                             s.has_post = True

@@ -255,6 +255,7 @@ def test_live_serial_estimates_every_intact_cycle_and_never_a_damaged_one(tmp_pa
     assert lost == dev_rep["injected"]["frames_lost"] == 3  # every loss accounted for, per wheel too
     assert wheels["wheel0"]["frames_lost"] == 1 and wheels["wheel1"]["frames_lost"] == 2
     assert wheels["wheel0"]["stuck_runs"] == 1 and wheels["wheel0"]["stuck_samples"] >= 100
+    assert wheels["wheel0"]["restarts"] == wheels["wheel1"]["restarts"] == 0  # no other device read as this one
     assert "counters:" in est.stderr
 
 
@@ -278,6 +279,49 @@ def test_live_serial_survives_the_device_disconnecting_and_coming_back(tmp_path)
     assert "disconnected" in est.stderr and "reopened" in est.stderr
     assert any("link back" in line for line in dev.lines)
     assert est.stderr.count("counters:") == 2  # on SIGUSR1, and at exit
+
+
+def test_a_pseudo_terminal_that_went_away_is_not_reopened_under_another_program(tmp_path):
+    """A /dev/pts/N that went away never comes back: the next pseudo-terminal any program opens gets its number.
+    Reopening it read that program's frames as this device's, a restart of it, which flags the cycle it falls in
+    'gap' (the live test above, under load, when a neighbour's firmware-sim got the number before the stop). The
+    source ends instead; a link to a pseudo-terminal is reopened as before (the disconnection test above)."""
+    import os
+    import select
+
+    from slipest.io.serial_source import SerialSource, pty_node
+
+    master, slave = os.openpty()
+    path = os.ttyname(slave)
+    os.close(slave)
+    os.symlink(path, tmp_path / "imu")
+    assert pty_node(path) and not pty_node(str(tmp_path / "imu")) and not pty_node("/dev/ttyUSB0")
+    source = SerialSource(path, reopen_interval=0.01)
+    held = []
+    try:
+        source.start(wait_open=5)
+        os.close(master)  # the device goes...
+        deadline = time.monotonic() + 10
+        while source.counters()["disconnects"] == 0 and time.monotonic() < deadline:
+            time.sleep(0.005)
+        while not held or os.ttyname(held[-1]) != path:  # ...and another program's pseudo-terminal gets its number
+            assert len(held) < 512
+            held += os.openpty()
+        os.close(held.pop())
+        other = held[-1]
+        poll = select.poll()
+        poll.register(other, select.POLLHUP)  # POLLHUP while no reader has the slave open
+        deadline = time.monotonic() + 0.5
+        while poll.poll(0) and time.monotonic() < deadline:
+            time.sleep(0.005)
+        assert poll.poll(0), "the source opened another program's pseudo-terminal"
+        assert source.ended.wait(5) and source.counters()["reopen_attempts"] == 0
+        said = " ".join(source.notices())
+        assert f"{path}: disconnected (" in said and "not reopened" in said and "--link" in said
+    finally:
+        source.close()
+        for fd in held:
+            os.close(fd)
 
 
 def test_record_is_complete_after_sigterm_and_replays_to_the_same_estimates(tmp_path):

@@ -111,6 +111,18 @@ def test_frames_read_before_the_stop_are_recorded_and_estimated(tmp_path):
     assert wc["samples_in"] == wc["rows_recorded"] == len(read_log(tmp_path / "run.csv")) == source.sent
 
 
+def test_the_stop_is_said_once_before_the_shutdown():
+    """on_stopping hears the reason RunResult carries, once, while the estimation is still open: a second
+    Ctrl-C sent after it is one that comes while the run stops."""
+    source = _ListSource(n_batches=5)
+    live = LiveEstimation(source)
+    heard = []
+    source.start()
+    result = run_live(source, live, StopConditions(duration=0.3), handle_signals=False,
+                      on_stopping=lambda reason: heard.append((reason, live._closed, source.ended.is_set())))
+    assert heard == [(result.reason, False, False)] and result.reason == "duration 0.3 s reached"
+
+
 def test_a_quiet_link_is_reported_once_and_data_coming_back_too(tmp_path):
     source = _ListSource(n_batches=10, pause_after=5, pause=1.2)
     live = LiveEstimation(source)

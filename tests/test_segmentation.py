@@ -323,6 +323,29 @@ def test_jump_over_whole_cycles_counts_skipped():
     assert_cycle_matches_stream(by_k(cycles)[4], t, az, th2)
 
 
+@pytest.mark.parametrize("hair", [2e-8, 5e-5])
+def test_a_jump_landing_a_hair_before_a_cycle_starts_that_cycle(hair):
+    """A device restarted (firmware-sim, 25 s later): its first angle, -pi/4 as a float32, is 2e-8 rad before
+    a cycle's start. It starts that cycle, as a first sample does; it used to open the cycle before it with this
+    one sample at its very end, a cycle nobody drove, emitted ('gap') and counted as one."""
+    t, az, th = make_stream(T=10.0, th0=-H)
+    end = th < 3 * P + H  # the first run: cycles 0-3, to the last sample of cycle 3
+    t, az, th = t[end], az[end], th[end]
+    t2, az2, th2 = make_stream(T=10.0, th0=-H - hair, t0=t[-1] + 25.0)
+    th2 = th2 + 10 * P  # unwrapped 10 cycles on (the branch the leg speed predicts)
+    for run in (run_many, run_push):
+        seg = CycleSegmenter()
+        cycles = run(seg, np.r_[t, t2], np.r_[az, az2], np.r_[th, th2]) + seg.finish()
+        assert [c.k for c in cycles] == [0, 1, 2, 3] + [10, 11, 12, 13], run
+        assert all(c.ok for c in cycles if c.k != 3) and by_k(cycles)[3].quality == "gap"  # closed 25 s late
+        assert by_k(cycles)[10].t_start == t2[0]
+        assert seg.counters["cycles_skipped"] == 6
+    # a landing farther before the start (1.2 ms of driving) is in the cycle before: flagged, never ok
+    t3, az3, th3 = make_stream(T=10.0, th0=-H - 0.63 * 1.2e-3, t0=t[-1] + 25.0)
+    cycles = by_k(run_many(CycleSegmenter(), np.r_[t, t3], np.r_[az, az3], np.r_[th, th3 + 10 * P]))
+    assert cycles[9].quality == "gap" and cycles[9].n_samples == 2 and cycles[10].ok
+
+
 def test_stop_inside_window_flags_stopped_and_emits_nothing_meanwhile():
     t, az, th = make_stream(T=20.0)
     th2 = th.copy()

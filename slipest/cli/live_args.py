@@ -8,9 +8,9 @@ counters for people (:func:`format_counters`), the live view
 (:func:`add_view_arguments`, :func:`view_from_args`: ``--view [HOST:]PORT``,
 a Foxglove WebSocket server, :mod:`slipest.live.view`), and the run of a
 command around a source (:func:`run_command`: counters at exit and on
-SIGUSR1, the ``--report`` JSON, exit code 0 on a normal stop; a second
-Ctrl-C or SIGTERM while it stops is ignored, so the recording and the
-report are complete).
+SIGUSR1, the ``--report`` JSON, exit code 0 on a normal stop; it says
+``stopping (REASON)`` as soon as it stops, and a second Ctrl-C or SIGTERM
+while it stops is ignored, so the recording and the report are complete).
 
 ``--record FILE`` (repeatable) records by the file's name: a ``.csv`` (or
 any name that is not a python-can log) gets the samples each wheel's
@@ -237,9 +237,13 @@ def run_command(prog: str, args, source, live: LiveEstimation, started: str, vie
             def status():
                 log.info("%s", format_counters(source.counters(), live.counters(), live.latency()))
 
+            def stopping(reason):
+                say(f"stopping ({reason}): completing the last cycles, the recordings and the report "
+                    "(a further Ctrl-C or SIGTERM is ignored)")
+
             stop = StopConditions(duration=args.duration, cycles=args.cycles, idle_timeout=args.idle_timeout)
             try:
-                result = run_live(source, live, stop, signals=signals, on_status=status,
+                result = run_live(source, live, stop, signals=signals, on_status=status, on_stopping=stopping,
                                   on_notice=lambda text: say(text, logging.WARNING), quiet_notice=args.quiet_notice)
             except FileExistsError as exc:  # the recording of a wheel that appeared later
                 raise SystemExit(f"{prog}: {exc}; use --overwrite") from None

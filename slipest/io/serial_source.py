@@ -12,8 +12,14 @@ unplugged, a pseudo-terminal's master closed: the read raises
 ``SerialException("device reports readiness to read but returned no data
 ...")`` and ``/dev/pts/N`` vanishes) it closes the port, forgets the partial
 frame, and tries to open the same path again every ``reopen_interval``
-seconds until it is back.  Everything is counted
-(:meth:`SerialSource.counters`): the decoder's counters plus ``opens``,
+seconds until it is back.  Except a pseudo-terminal opened by its own node
+(:func:`pty_node`: ``/dev/pts/N``, not a link to it): a pair that went away
+never comes back, and the next pseudo-terminal any program opens gets its
+number, so reopening it would read another device's frames as this one's
+(taken for a restart of it); the source ends instead, saying why.  A device
+that re-creates its pseudo-terminal keeps a stable link to it
+(``firmware-sim --link``, socat's ``link=``), which is reopened.
+Everything is counted (:meth:`SerialSource.counters`): the decoder's counters plus ``opens``,
 ``disconnects``, ``reopen_attempts``, ``read_errors`` and
 ``notices_suppressed``.  A port that keeps going away and coming back
 (a device that opens and closes, a path that points at a dead pty) says so
@@ -23,6 +29,8 @@ three times, then once per ten seconds with the number left out
 
 from __future__ import annotations
 
+import os
+import re
 import time
 
 import serial
@@ -30,16 +38,27 @@ import serial
 from slipest.io.serial_frames import FRAME_IMU_SAMPLE, SEQ_MODULUS, FrameDecoder
 from slipest.io.source import Source, SourceBatch
 
-__all__ = ["SerialSource"]
+__all__ = ["SerialSource", "pty_node"]
+
+#: A pseudo-terminal's slave node: Linux's /dev/pts/N, macOS's /dev/ttysNNN.
+_PTY_NODE = re.compile(r"/dev/(pts/\d+|ttys\d+)")
+
+
+def pty_node(port: str) -> bool:
+    """Whether ``port`` names a pseudo-terminal's slave node itself (``/dev/pts/N``, ``/dev/ttysNNN``), not a link
+    to one nor any other port or pyserial URL: the number of a pseudo-terminal that went away goes to the next one
+    any program opens."""
+    return not os.path.islink(port) and _PTY_NODE.fullmatch(os.path.normpath(os.path.abspath(port))) is not None
 
 
 class SerialSource(Source):
     """Frames from a serial port (any pyserial URL), read in a background thread.
 
     ``baudrate`` matters for real UARTs only (a pseudo-terminal ignores it).
-    ``reopen``: keep trying to reopen a port that went away (default), else
-    end.  :meth:`start` raises ``serial.SerialException`` (an ``OSError``)
-    when the port cannot be opened within ``wait_open`` seconds.
+    ``reopen``: keep trying to reopen a port that went away (default; never a
+    :func:`pty_node`), else end.  :meth:`start` raises
+    ``serial.SerialException`` (an ``OSError``) when the port cannot be opened
+    within ``wait_open`` seconds.
     """
 
     seq_modulus = SEQ_MODULUS
@@ -55,6 +74,7 @@ class SerialSource(Source):
         self.reopen_interval = reopen_interval
         self.decoder = decoder or FrameDecoder()
         self._ser = None
+        self._pty_gone = False  # the pseudo-terminal node we read went away: never reopened
         self.c = {"opens": 0, "disconnects": 0, "reopen_attempts": 0, "read_errors": 0}
 
     def describe(self) -> str:
@@ -85,7 +105,7 @@ class SerialSource(Source):
     def _read(self) -> bool | None:
         ser = self._ser
         if ser is None:
-            if not self.reopen:
+            if not self.reopen or self._pty_gone:
                 return False
             self.c["reopen_attempts"] += 1
             try:
@@ -110,7 +130,15 @@ class SerialSource(Source):
         self.c["disconnects"] += 1
         self.c["read_errors"] += 1
         self.last_error = str(exc)
-        self._notice(f"{self.port}: disconnected ({exc}); reopening", kind="disconnected")
+        if self.reopen and pty_node(self.port):
+            self._pty_gone = True
+            self.last_error = (f"{exc}; a pseudo-terminal that went away is not reopened: its number goes to the next "
+                               "one any program opens (a device that re-creates its pseudo-terminal keeps a stable "
+                               "link to it, e.g. firmware-sim --link, socat link=, and that link is reopened)")
+            self._notice(f"{self.port}: disconnected ({self.last_error})", kind="disconnected")
+        else:
+            self._notice(f"{self.port}: disconnected ({exc})" + ("; reopening" if self.reopen else ""),
+                         kind="disconnected")
         self._release()
         self.decoder.reset()  # the partial frame is gone; counters are kept
 

@@ -17,7 +17,8 @@ Signals (:class:`StopSignals`, main thread only): SIGTERM and SIGINT (and
 SIGBREAK where it exists: Windows' Ctrl-Break) set a flag the loop checks
 every ``poll`` seconds, so no batch is ever half handled; further ones are
 counted and ignored, so that nothing interrupts the shutdown (a double
-Ctrl-C loses nothing: the records and the report are complete).  SIGUSR1,
+Ctrl-C loses nothing: the records and the report are complete).  The loop
+says when it has taken the stop (``on_stopping``), before the shutdown.  SIGUSR1,
 where the platform has it (not on Windows), asks for ``on_status``.  A
 caller that writes more after the run (a report) keeps the handlers
 installed around its own code by passing a :class:`StopSignals` it entered.
@@ -117,8 +118,10 @@ class RunResult:
 class StopSignals:
     """Stop and status signals turned into flags, for the time of a ``with`` block.
 
-    The first of :data:`STOP_SIGNALS` sets :attr:`stop` (its name); further
-    ones only count (:attr:`ignored`): nothing is raised, so no write or
+    The first of :data:`STOP_SIGNALS` handled sets :attr:`stop` (its name); further
+    ones only count (:attr:`ignored`).  Handled, not sent: signals that are pending together (sent
+    while the process was not running) are delivered lowest number first (SIGINT before SIGTERM),
+    whatever order they were sent in.  Nothing is raised, so no write or
     flush is ever interrupted halfway.  With ``status``, SIGUSR1 (where it
     exists) sets a flag :meth:`take_status` returns once.  The handlers only
     set flags (printing from a handler could re-enter a stream the main
@@ -209,13 +212,18 @@ class _QuietNotices:
 
 
 def run_live(source, live, stop: StopConditions | None = None, *, on_notice: Callable[[str], None] | None = None,
-             on_status: Callable[[], None] | None = None, handle_signals: bool = True,
-             signals: StopSignals | None = None, poll: float = 0.05, quiet_notice: float | None = 5.0) -> RunResult:
+             on_status: Callable[[], None] | None = None, on_stopping: Callable[[str], None] | None = None,
+             handle_signals: bool = True, signals: StopSignals | None = None, poll: float = 0.05,
+             quiet_notice: float | None = 5.0) -> RunResult:
     """Run ``live`` on ``source`` (started) until a stop condition (see the module docstring).
 
     ``on_notice(text)``: each notice of the source and of the estimation, and the quiet-link
     notices (default: logged at INFO level).
     ``on_status()``: called on SIGUSR1 (None: SIGUSR1 is left alone).
+    ``on_stopping(reason)``: called once a stop condition holds or a stop signal was taken (within
+    ``poll`` s of it), with the reason :class:`RunResult` will carry, before the shutdown (the last
+    batches, the last cycles, the recording): a user who pressed Ctrl-C hears it was taken, and a
+    further signal from then on is counted and ignored.
     ``handle_signals``: catch the stop signals (and SIGUSR1) while running; ``signals``: a
     :class:`StopSignals` the caller entered (used instead, left installed on return).
     ``poll`` [s]: longest wait for data before the conditions are checked again.
@@ -263,6 +271,8 @@ def run_live(source, live, stop: StopConditions | None = None, *, on_notice: Cal
             if ended and not batches:
                 reason = "the source ended" + (f" ({source.last_error})" if source.last_error else "")
                 break
+        if on_stopping is not None:
+            on_stopping(reason)
         source.stop_reading()
         rest = source.get(0)  # read before the reader stopped: recorded and estimated like the others
         if rest:
