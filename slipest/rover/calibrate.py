@@ -594,5 +594,5 @@ def _unexplained(model, logs, soils: list[LogSoil], report: dict) -> dict:
             "largest_feature_bias": [{"feature": model.features[j], "bias_sd": float(bias[j])} for j in order[:3]]}
 
 
-__all__ = ["CalibrateOptions", "Calibration", "Candidate", "MIN_GAIN", "Progress", "TestbedRun", "calibrate", "covariance_factor",
-           "diagnose_runs", "scale_for_coverage"]
+__all__ = ["CalibrateOptions", "Calibration", "Candidate", "MIN_GAIN", "Progress", "TestbedRun", "calibrate",
+           "covariance_factor", "diagnose_runs", "scale_for_coverage"]
