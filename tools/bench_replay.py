@@ -21,7 +21,8 @@ Writes two simulated logs (1 kHz, 0.01 g noise, the soil changing every
 
 Targets (issue 3): >= 1e6 samples/s end to end, <= 10 us per pushed
 sample, estimate within 1 ms of the closing sample, memory independent of
-the log's length. The figures are printed as measured, on whatever else
+the log's length; issue 11, with the model of the whole envelope, keeps
+them but for the closing sample: p99 <= 2 ms. The figures are printed as measured, on whatever else
 the machine is doing at the time.
 
     python tools/bench_replay.py            # ~2-3 min
@@ -202,7 +203,7 @@ def main(argv=None) -> int:
     print(f"push API, one sample at a time: {p['us_per_sample']:.2f} us/sample over {p['samples']} samples   [target <= 10 us]")
     print(f"closing sample to estimate (push that closes a cycle, {p['cycles_closed']} cycles): median "
           f"{p['closing_push_ms_median']:.3f} ms, p90 {p['closing_push_ms_p90']:.3f} ms, p99 {p['closing_push_ms_p99']:.3f} ms, "
-          f"max {p['closing_push_ms_max']:.3f} ms   [target <= 1 ms]  (load average {p['load_average_1min']:.1f} "
+          f"max {p['closing_push_ms_max']:.3f} ms   [target: p99 <= 2 ms; issue 3's 1 ms]  (load average {p['load_average_1min']:.1f} "
           f"on {os.cpu_count()} CPUs)")
     for name in ("short", "long"):
         m = r["memory"][name]
