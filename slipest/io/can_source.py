@@ -67,7 +67,8 @@ def estimate_message(wheel: int, estimate):
 def add_record(rec, imu: list, refs: list) -> bool:
     """File one decoded frame where a :class:`~slipest.io.source.SourceBatch` takes it: an
     :class:`ImuMessage` as ``(wheel, counter, time_mod, az, theta)`` in ``imu``, a valid
-    :class:`SlipReferenceMessage` as ``(wheel, counter, time_mod, slip)`` in ``refs``; anything else
+    :class:`SlipReferenceMessage` as ``(wheel, counter, time_mod, slip, len(imu))`` in ``refs`` (its
+    place among the IMU frames); anything else
     (None, estimates) is left out.  False for a reference flagged invalid (NaN slip), for the caller
     to count."""
     if isinstance(rec, ImuMessage):
@@ -75,7 +76,7 @@ def add_record(rec, imu: list, refs: list) -> bool:
     elif isinstance(rec, SlipReferenceMessage):
         if rec.slip != rec.slip:
             return False
-        refs.append((rec.wheel, rec.counter, rec.time_mod, rec.slip))
+        refs.append((rec.wheel, rec.counter, rec.time_mod, rec.slip, len(imu)))
     return True
 
 

@@ -151,7 +151,7 @@ class SerialSource(Source):
             if f.kind == FRAME_IMU_SAMPLE:
                 imu.append((f.wheel, f.seq, f.t_us, f.az, f.theta))
             else:
-                refs.append((f.wheel, f.seq, f.t_us, f.slip))
+                refs.append((f.wheel, f.seq, f.t_us, f.slip, len(imu)))
         self._put(SourceBatch(intake, imu, refs))
 
     def _interrupt(self) -> None:

@@ -86,9 +86,11 @@ def one_line_logs(logger_name: str) -> None:
 class SourceBatch:
     """Frames that arrived together.  ``intake`` [s]: host monotonic time of
     arrival; ``imu``: ``(wheel, seq, t, az, theta)`` tuples; ``refs``:
-    ``(wheel, seq, t, slip)`` tuples; both in arrival order, ``t`` in the
+    ``(wheel, seq, t, slip, at)`` tuples; both in arrival order, ``t`` in the
     source's ``time_unit``, ``az`` [m/s^2], ``theta`` [rad, wrapped by the
-    device], ``slip`` [-] (a reference)."""
+    device], ``slip`` [-] (a reference), ``at`` the number of the batch's
+    ``imu`` frames that arrived before the reference (it holds for the
+    samples after them)."""
 
     intake: float
     imu: list

@@ -183,7 +183,8 @@ class LiveEstimation:
     def feed(self, batches) -> None:
         """Source batches (:class:`~slipest.io.source.SourceBatch`) in arrival order.  Each wheel's
         IMU frames are merged into one push per run between reference frames (fewer, larger pushes
-        when the consumer is behind)."""
+        when the consumer is behind); a reference holds from its place among the IMU frames it
+        arrived with."""
         per_wheel: dict[int, tuple[list, list, list, list, list]] = {}
         unit = self.time_unit
 
@@ -192,12 +193,8 @@ class LiveEstimation:
                 self.samples(w, seq, t, az, th, intake)
             per_wheel.clear()
 
-        for b in batches:
-            if b.refs:
-                push()
-                for wheel, _seq, _t, slip in b.refs:
-                    self.reference(wheel, slip)
-            for wheel, seq, t, az, th in b.imu:
+        def add(frames, intake):
+            for wheel, seq, t, az, th in frames:
                 cols = per_wheel.get(wheel)
                 if cols is None:
                     cols = per_wheel[wheel] = ([], [], [], [], [])
@@ -205,7 +202,16 @@ class LiveEstimation:
                 cols[1].append(t * unit)
                 cols[2].append(az)
                 cols[3].append(th)
-                cols[4].append(b.intake)
+                cols[4].append(intake)
+
+        for b in batches:
+            done = 0
+            for wheel, _seq, _t, slip, at in b.refs:
+                add(b.imu[done:at], b.intake)
+                done = max(done, at)
+                push()
+                self.reference(wheel, slip)
+            add(b.imu[done:] if done else b.imu, b.intake)
         push()
 
     def reference(self, wheel: int, slip: float) -> None:
