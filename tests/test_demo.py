@@ -53,3 +53,21 @@ def test_demo_over_the_can_server_exits_0_with_a_summary():
     m = re.search(r"slip: RMSE (0\.\d+)", text)
     assert m and float(m.group(1)) < 0.15
     assert re.search(r"frames: \d+ received, 0 lost", text)
+
+
+def test_demo_waits_for_a_device_that_is_still_preparing_its_run_then_gives_up_on_silence():
+    # the device simulates its run (and, on the first run after an install, compiles its kernels: 37 s
+    # measured) before it streams: that silence must not count as a dead device
+    from slipest.cli.demo import _GAVE_UP, _NO_START, _START_LIMIT, _DeviceWatch
+
+    w = _DeviceWatch()
+    assert w.reason(now=60.0, started=0.0, last_data=None, device_exited=False) is None
+    assert w.say_waiting  # the user is told why nothing shows yet, once
+    w.say_waiting = False
+    assert w.reason(now=61.0, started=0.0, last_data=None, device_exited=False) is None and not w.say_waiting
+    assert w.reason(now=_START_LIMIT + 1, started=0.0, last_data=None, device_exited=False) == _NO_START
+    w.streaming_since = 70.0  # it streams: 30 s without data from then on ends the run
+    assert w.reason(now=99.0, started=0.0, last_data=None, device_exited=False) is None
+    assert w.reason(now=101.0, started=0.0, last_data=None, device_exited=False) == _GAVE_UP
+    assert w.reason(now=101.0, started=0.0, last_data=80.0, device_exited=False) is None
+    assert w.reason(now=101.0, started=0.0, last_data=100.0, device_exited=True) == "the device finished"

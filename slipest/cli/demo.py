@@ -56,6 +56,10 @@ DEMO_SCENARIO = {
     ],
 }
 _GAVE_UP = "no data from the device for 30 s"
+#: Longest wait for the device to start streaming [s]: it simulates the whole run first, and the first run
+#: after an install also compiles the simulator's kernels (about 40 s on a 2-core machine).
+_START_LIMIT = 300.0
+_NO_START = f"the device did not start streaming within {_START_LIMIT:.0f} s"
 _STRETCHES = ("firm soil, steady slip", "same soil, slip rising", "stiffer, grippier soil", "soft soil, slip falling")
 
 
@@ -134,6 +138,31 @@ class _SideBySide:
         return self.cal.hints
 
 
+class _DeviceWatch:
+    """When the demo stops waiting on its device (times on the host's monotonic clock [s]).
+
+    The device simulates its whole run before it streams, and the first run after an install also
+    compiles the simulator's kernels, so silence before it says it streams (``streaming_since``) is
+    allowed up to :data:`_START_LIMIT`; once it streams, 30 s without data ends the run
+    (:data:`_GAVE_UP`). ``say_waiting`` turns True once, 5 s into the wait, for the caller to tell
+    the user why nothing shows yet."""
+
+    def __init__(self):
+        self.streaming_since: float | None = None
+        self.say_waiting = False
+        self._said = False
+
+    def reason(self, now: float, started: float, last_data: float | None, device_exited: bool) -> str | None:
+        if device_exited and now - (last_data or started) > 0.5:
+            return "the device finished"
+        if self.streaming_since is None:
+            if not self._said and now - started > 5:
+                self._said = self.say_waiting = True
+            return _NO_START if now - started > _START_LIMIT else None
+        quiet = now - max(last_data or self.streaming_since, self.streaming_since)
+        return _GAVE_UP if quiet > 30 else None
+
+
 class _Child:
     """A child process whose stdout lines are collected in a thread."""
 
@@ -141,6 +170,7 @@ class _Child:
         self.p = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1)
         self.lines: queue.Queue = queue.Queue()
         self.err: list[str] = []
+        self.seen: dict[str, bool] = {}  # prefixes poll_line has seen
         threading.Thread(target=self._pump, args=(self.p.stdout, True), daemon=True).start()
         threading.Thread(target=self._pump, args=(self.p.stderr, False), daemon=True).start()
 
@@ -149,6 +179,20 @@ class _Child:
             (self.lines.put if out else self.err.append)(line.rstrip("\n"))
         if out:
             self.lines.put(None)
+
+    def poll_line(self, prefix: str) -> bool:
+        """True once a stdout line containing ``prefix`` has been read (lines before it are consumed)."""
+        while not self.seen.get(prefix):
+            try:
+                line = self.lines.get_nowait()
+            except queue.Empty:
+                return False
+            if line is None:
+                self.lines.put(None)  # the end stays visible to later calls
+                return False
+            if prefix in line:
+                self.seen[prefix] = True
+        return True
 
     def expect(self, prefix: str, timeout: float) -> str:
         deadline = time.monotonic() + timeout
@@ -393,17 +437,23 @@ def run(args: argparse.Namespace) -> int:
                   f"{device.p.pid}); estimates are published back on the bus", file=out, flush=True)
         display.header()
 
+        watch = _DeviceWatch()
+
         def device_done(state):
-            quiet = state.now - (state.last_data or state.started)
-            if device.p.poll() is not None and quiet > 0.5:
-                return "the device finished"
-            return _GAVE_UP if quiet > 30 else None
+            if watch.streaming_since is None and device.poll_line("streaming"):
+                watch.streaming_since = state.now
+            reason = watch.reason(state.now, state.started, state.last_data, device.p.poll() is not None)
+            if watch.say_waiting:
+                watch.say_waiting = False
+                print("slipest demo: the device is simulating the run before it streams (the first run after an "
+                      "install also compiles its kernels, about a minute)", file=out, flush=True)
+            return reason
 
         result = run_live(source, live, StopConditions(until=device_done), on_notice=_notices_to(view))
         if result.interrupted:
             print("\nslipest demo: interrupted", file=out)
-        elif result.reason == _GAVE_UP:
-            print(f"slipest demo: {_GAVE_UP}; giving up", file=sys.stderr)
+        elif result.reason in (_GAVE_UP, _NO_START):
+            print(f"slipest demo: {result.reason}; giving up", file=sys.stderr)
             code = 1
         elif device.p.wait(10) != 0:
             print("slipest demo: the device failed: " + " | ".join(device.err[-5:]), file=sys.stderr)
