@@ -24,6 +24,14 @@ A cycle with a few samples missing or unusable in short holes (see
 (:mod:`slipest.despike`) is estimated without them, with quality
 ``"repaired"`` and their count in ``n_repaired``.
 
+The IMU's timing against the encoder is checked on every leg swap
+(:mod:`slipest.swap_timing`): when the IMU sees the swaps consistently
+later or earlier than the encoder (an encoder zero offset, a time skew
+between their time stamps), the angle is corrected from then on (``theta``
+less the offset times the leg speed), the cycle being filled is dropped
+(the stream re-synchronises, counted in ``segmenter_resyncs``), and the
+``"timing"`` hint says by how much (``align_timing=False``: never).
+
 Methods (each a :class:`~slipest.cycle_estimator.CycleEstimator`):
 
 * ``"default"``: the multi-feature surrogate with the recursive soil filter
@@ -73,6 +81,7 @@ from slipest.despike import outliers
 from slipest.features import INDEX, cycle_features, sample_noise
 from slipest.inverse.base import Soil
 from slipest.segmentation import CycleSegmenter
+from slipest.swap_timing import SwapTiming
 from slipest.units import G
 
 #: Estimation methods (``method=``).
@@ -347,6 +356,7 @@ class SlipEstimator:
         model=None,
         calibration: dict | None = None,
         noise: float | None = None,
+        align_timing: bool = True,
     ):
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, not {method!r}")
@@ -369,6 +379,7 @@ class SlipEstimator:
         if noise is not None and not (math.isfinite(noise) and noise >= 0):
             raise ValueError(f"noise={noise} g must be a finite number >= 0")
         self.noise = noise
+        self.align_timing = bool(align_timing)
         self.segmenter = CycleSegmenter(self.n_legs, **self._seg_opts)
         self._make_filter()
         self._reset_counts()
@@ -416,13 +427,21 @@ class SlipEstimator:
         self._noises: deque = deque(maxlen=NOISE_CYCLES)  # the last cycles' noise measures [g]
         self._noise_smooth = math.nan  # the last estimated cycle's smoothed noise [g]
         self._hints: dict[str, str] = {}
+        self._timing = SwapTiming(self.n_legs) if self.align_timing else None
+        self._timing_shift = 0.0  # angle taken off theta for the IMU's timing so far [rad]
+        self._timing_corrections = 0
+        self._shift_pending = None  # a new correction decided on the cycle being estimated [rad]
+        self._retimed_through = -(2**62)  # cycles up to this one were emitted before the last re-timing
+        self._n_retime_dropped = 0  # cycles cut again after a re-timing, already emitted: not emitted twice
+        self._retimed_at = -1  # index, in the cycles _emit was given, of the one that re-timed theta
         #: The feature row (:data:`slipest.features.FEATURE_NAMES`) of the last cycle that reached the estimator.
         self.last_features = None
 
     @property
     def hints(self) -> dict:
         """What looks wrong with the input, once per kind: a sentence for people naming the likely mistake
-        (``"units"``, ``"degrees"``), or saying that the data do not fit the model (``"fit"``, from
+        (``"units"``, ``"degrees"``, ``"timing"``: the IMU and the encoder disagree on the leg swaps and the
+        angle was corrected), or saying that the data do not fit the model (``"fit"``, from
         :func:`fit_advice` as soon as it holds)."""
         return dict(self._hints)
 
@@ -435,9 +454,10 @@ class SlipEstimator:
         return float(statistics.median(self._noises)) if self._noises else math.nan  # numpy's value, 40 us less
 
     def reset(self) -> None:
-        """Forget the stream and everything learnt (segmenter, soil filter, counters)."""
+        """Forget the stream and everything learnt (segmenter, soil filter, counters, timing correction)."""
         self.segmenter = CycleSegmenter(self.n_legs, **self._seg_opts)
         self.filter.reset()
+        self._theta_offset -= self._timing_shift
         self._reset_counts()
 
     @property
@@ -449,8 +469,11 @@ class SlipEstimator:
         their intervals widened), ``cycles_off_model`` (cycles off the model: estimated ones with a misfit
         or a persistent discrepancy, see :func:`off_model`, and those flagged ``misfit``),
         ``cycles_repaired`` and ``samples_repaired`` (estimated cycles with samples left out, and how many),
-        ``spikes`` (isolated outliers found), ``noise_g`` (the running noise estimate [g]), and the
-        segmenter's counters prefixed ``segmenter_``."""
+        ``spikes`` (isolated outliers found), ``noise_g`` (the running noise estimate [g]),
+        ``timing_corrections`` and ``timing_shift_rad`` (how often the angle was corrected for the IMU's
+        timing, and the correction in force [rad], see the module docstring), ``cycles_retimed`` (the rest
+        of an estimated cycle cut again on the corrected angle: not emitted twice), ``swaps_measured`` (leg swaps whose
+        IMU step was found, of ``swaps_looked`` at), and the segmenter's counters prefixed ``segmenter_``."""
         c = {
             "samples": self._n_samples,
             "cycles": self._n_estimates,
@@ -463,6 +486,11 @@ class SlipEstimator:
             "samples_repaired": self._n_repaired,
             "spikes": self._n_spikes,
             "noise_g": self.noise_estimate,
+            "timing_corrections": self._timing_corrections,
+            "timing_shift_rad": self._timing_shift,
+            "cycles_retimed": self._n_retime_dropped,
+            "swaps_measured": self._timing.measured if self._timing is not None else 0,
+            "swaps_looked": self._timing.looked if self._timing is not None else 0,
         }
         for k, v in sorted(self._n_flagged.items()):
             c[f"flagged_{k}"] = v
@@ -513,6 +541,8 @@ class SlipEstimator:
         if math.isfinite(gravity) and not GRAVITY_RANGE[0] <= gravity <= GRAVITY_RANGE[1]:
             self._hints.setdefault("units", _units_hint(gravity))
             return self._flagged(cyc, "units", ref)
+        if self._timing is not None:
+            self._shift_pending = self._timing.add_cycle(cyc.k, tt, az, ph, omega)
         if self.noise is None:  # measured only when not given (noise_estimate then ignores the measures)
             measured = sample_noise(ph, az, n_legs=self.n_legs)
             if math.isfinite(measured):
@@ -555,14 +585,42 @@ class SlipEstimator:
                 self._hints["fit"] = advice
 
     def _emit(self, cycles, refs) -> list:
+        """The estimates of ``cycles``, in order; stops after a cycle that re-timed theta (the later ones were
+        cut on the old angle: the caller pushes their samples again, see :meth:`push_many`)."""
         out = []
-        for cyc, ref in zip(cycles, refs):
+        for i, (cyc, ref) in enumerate(zip(cycles, refs)):
+            if cyc.k <= self._retimed_through:  # the rest of a cycle already estimated, seen again re-timed
+                self._n_retime_dropped += 1
+                continue
+            if self._timing is not None and cyc.quality != "ok":
+                self._timing.forget_tail()
             e = self._estimate(cyc, ref)
             self._n_estimates += 1
             if self.on_estimate is not None:
                 self.on_estimate(e)
             out.append(e)
+            if self._shift_pending is not None:
+                self._retime(e.cycle)
+                self._retimed_at = i
+                break
         return out
+
+    def _retime(self, cycle: int) -> None:
+        """Take the new timing correction off theta from the next sample on (the caller re-synchronises the
+        segmenter after the closing sample of ``cycle``: the open cycle is dropped)."""
+        shift, self._shift_pending = self._shift_pending, None
+        self._theta_offset += shift - self._timing_shift
+        self._timing_shift = shift
+        self._timing_corrections += 1
+        self._retimed_through = cycle
+        tm = self._timing
+        what = (f"{1e3 * abs(tm.offset):.0f} ms {'after' if tm.offset > 0 else 'before'} the encoder does, at any "
+                f"leg speed (a time skew between IMU and encoder)" if tm.model == "time" else
+                f"{abs(tm.offset):.3f} rad of leg angle {'after' if tm.offset > 0 else 'before'} the encoder does (an "
+                f"encoder zero offset)")
+        self._hints["timing"] = (f"the IMU sees the leg swaps {what}: theta corrected for it from cycle {cycle + 1} "
+                                 "on; fix the encoder zero or the time stamps, or calibrate the rover (slipest "
+                                 "calibrate)")
 
     def push(self, t: float, az: float, theta: float, slip_ref: float | None = None) -> list:
         """Add one sample (``t`` [s], ``az`` [m/s^2], ``theta`` [rad], optional reference slip [-]).
@@ -573,7 +631,10 @@ class SlipEstimator:
         cycles = self.segmenter.push(t, az, theta - self._theta_offset)
         out = []
         if cycles:
+            n_before = self._timing_corrections
             out = self._emit(cycles, [self._ref.take()] + [math.nan] * (len(cycles) - 1))
+            if self._timing_corrections != n_before:  # re-timed: the next sample starts the stream again
+                self.segmenter.resync()
             last = cycles[-1]
             self._prefetch_at = last.t_end + PREFETCH_LEAD * (last.t_end - last.t_start)
         elif t >= self._prefetch_at:  # the next close is near: get the estimator's table ready, warm it
@@ -592,34 +653,63 @@ class SlipEstimator:
         """
         t = np.asarray(t, dtype=np.float64)
         n = t.shape[0] if t.ndim == 1 else -1
-        if self._theta_offset:
-            theta = np.asarray(theta, dtype=np.float64) - self._theta_offset
-        cycles = self.segmenter.push_many(t, az, theta)
         self._n_samples += max(n, 0)
-        if slip_ref is None or not cycles:
-            refs = [math.nan] * len(cycles)
+        if slip_ref is not None:
+            slip_ref = np.asarray(slip_ref, dtype=float)
+            if slip_ref.shape != t.shape:
+                raise ValueError(f"slip_ref must have the shape of t {t.shape}, got {slip_ref.shape}")
+        return self._push_chunk(t, az, theta, slip_ref)
+
+    def _push_chunk(self, t, az, theta, slip_ref) -> list:
+        """:meth:`push_many` after the checks; when a cycle re-times theta, the samples after its closing
+        sample are pushed again on the new angle, as :meth:`push` would have taken them."""
+        shifted = np.asarray(theta, dtype=np.float64) - self._theta_offset if self._theta_offset else theta
+        snap = self.segmenter.snapshot() if self._timing is not None else None
+        cycles = self.segmenter.push_many(t, az, shifted)
+        if not cycles:
             if slip_ref is not None:
-                self._ref.add_many(np.asarray(slip_ref, dtype=float))
-            elif cycles:
-                refs[0] = self._ref.take()
-            return self._emit(cycles, refs)
-        slip_ref = np.asarray(slip_ref, dtype=float)
-        if slip_ref.shape != t.shape:
-            raise ValueError(f"slip_ref must have the shape of t {t.shape}, got {slip_ref.shape}")
-        refs = []
+                self._ref.add_many(slip_ref)
+            return []
+        # index of each cycle's closing sample in the chunk (first sample at or after the previous one's with
+        # t == t_end; -1: closed by the same sample as the previous cycle, as skipped cycles are)
+        ends = []
         start = 0
         for j, cyc in enumerate(cycles):
-            # index of this cycle's closing sample in the chunk (first sample at or after start with t == t_end)
             hit = np.flatnonzero(t[start:] == cyc.t_end)
             if hit.size == 0 or j > 0 and cycles[j - 1].t_end == cyc.t_end:
-                refs.append(math.nan)  # closed by the same sample as the previous cycle (skipped cycles)
+                ends.append(-1)
                 continue
-            end = start + int(hit[0])
-            self._ref.add_many(slip_ref[start:end])
-            refs.append(self._ref.take())
-            start = end
-        self._ref.add_many(slip_ref[start:])
-        return self._emit(cycles, refs)
+            start += int(hit[0])
+            ends.append(start)
+        if slip_ref is None:
+            refs = [math.nan] * len(cycles)
+            refs[0] = self._ref.take()
+        else:
+            refs = []
+            start = 0
+            for end in ends:
+                if end < 0:
+                    refs.append(math.nan)
+                    continue
+                self._ref.add_many(slip_ref[start:end])
+                refs.append(self._ref.take())
+                start = end
+            self._ref.add_many(slip_ref[start:])
+        n_before = self._timing_corrections
+        out = self._emit(cycles, refs)
+        if self._timing_corrections != n_before:  # re-timed on cycles[self._retimed_at]
+            j = max(ends[:self._retimed_at + 1])
+            # the segmenter as it was after the closing sample (the cycles it closes again are the ones emitted)
+            self.segmenter.restore(snap)
+            self.segmenter.push_many(t[:j + 1], np.asarray(az)[:j + 1], np.asarray(shifted)[:j + 1])
+            self.segmenter.resync()
+            if slip_ref is not None:  # the references from the closing sample on are the next cycle's again
+                self._ref = ReferenceTally()
+                self._ref.add(float(slip_ref[j]))
+            rest = slice(j + 1, None)
+            out += self._push_chunk(t[rest], np.asarray(az)[rest], np.asarray(theta)[rest],
+                                    None if slip_ref is None else slip_ref[rest])
+        return out
 
     def finish(self) -> list:
         """Say the stream ended: the estimate of its last cycle, which no sample will close (``"partial"`` when

@@ -264,6 +264,11 @@ _STATE = np.dtype([
     ("e_missing", _i8),
 ])
 
+#: What :meth:`CycleSegmenter.resync` keeps of the state: the counters, the unwrapping, the last time.
+_KEPT_ON_RESYNC = ("have_raw", "last_raw", "nwrap", "last_t", "samples_seen", "samples_invalid", "samples_reverse",
+                   "samples_overflow", "time_backwards", "time_duplicate", "wraps", "reversals", "resyncs",
+                   "cycles_skipped")
+
 
 @numba.njit(cache=True)
 def _open_cycle(s):
@@ -646,6 +651,30 @@ class CycleSegmenter:
         """Forget the stream (buffers keep their current capacity)."""
         self._st = self._fresh.copy()
         self._c_cycles = dict.fromkeys(QUALITIES, 0)
+
+    def resync(self) -> None:
+        """Start the stream again from the next sample, as after a restart, keeping the counts, the
+        unwrapping of theta and the last time seen: for a caller that re-times theta (the open cycle is
+        dropped; the next sample synchronises, its first cycle may be ``"partial"``)."""
+        old = self._st[0]
+        self._st = self._fresh.copy()
+        for name in _KEPT_ON_RESYNC:
+            self._st[0][name] = old[name]
+
+    def snapshot(self) -> tuple:
+        """The segmenter's state now (the open window's samples copied), for :meth:`restore`."""
+        n = int(self._st[0]["n"])
+        return self._st.copy(), dict(self._c_cycles), self._buf[:, :n].copy()
+
+    def restore(self, snap: tuple) -> None:
+        """Go back to the state of a :meth:`snapshot` (the samples pushed since are forgotten)."""
+        st, counts, window = snap
+        n = window.shape[1]
+        if self._buf.shape[1] < n:
+            self._buf = np.empty((3, n))
+        self._buf[:, :n] = window
+        self._st = st.copy()
+        self._c_cycles = dict(counts)
 
     def usable(self, az) -> np.ndarray:
         """Mask of the samples of a cycle's ``az`` [m/s^2] that may be estimated from (:func:`usable` with

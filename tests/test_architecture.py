@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 #: Pure-computation modules and packages (a name covers its submodules).
 PURE = ("slipest.model", "slipest.inverse", "slipest.diagnosis", "slipest.features", "slipest.segmentation",
         "slipest.estimator", "slipest.cycle_estimator", "slipest.online", "slipest.units", "slipest.latency",
-        "slipest.calibration", "slipest.rover")
+        "slipest.calibration", "slipest.rover", "slipest.swap_timing", "slipest.despike")
 #: Edge modules inside pure packages (they write files or draw).
 PURE_EXCEPTIONS = ("slipest.diagnosis.plots",)
 #: Libraries that do I/O (ports, buses, networks, processes, signals, threads, plots, terminals).

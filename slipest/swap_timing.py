@@ -1,0 +1,176 @@
+"""The IMU's timing against the leg-angle encoder, read from the step at each leg swap (pure computation).
+
+At a leg swap (phase ``pi/nL`` of one cycle, ``-pi/nL`` of the next) the
+stance leg hands the hub over to the next leg: the hub's vertical
+acceleration jumps from where the stance's stick-slip left it to the rigid
+level of the new leg, within one sample (the stick-slip model, thesis Eqs.
+5.10-5.14). The encoder says when the swap happens; the IMU shows when it
+happened. The two agree on a rover whose encoder zero and clocks are right.
+An encoder zero offset, or a time skew between the IMU's and the encoder's
+time stamps, moves the IMU's step away from the encoder's swap by the same
+amount on every cycle, and the estimates then come out biased with tight
+intervals (an angle offset of 0.12-0.18 rad: slip 0.09 low, 95 % intervals
+covering about 57 %; docs/estimator.md).
+
+:func:`swap_step` finds the step in the samples around one swap;
+:class:`SwapTiming` follows the steps of consecutive cycles and decides
+when the IMU and the encoder disagree by more than :data:`TOLERANCE`
+(consistently over :data:`MIN_STEPS` steps): it then gives the angle to
+take off ``theta`` (the offset times the leg speed) so that they agree
+again. A cycle without a step that stands out (no stick-slip at the end of
+the stance, or an IMU whose bandwidth smooths the step) gives no measure.
+
+Units: t [s], az [m/s^2], theta and phases [rad], leg speed [rad/s].
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import numpy as np
+
+#: How far from the encoder's swap a step is looked for, each side [rad of leg angle] (at most
+#: :data:`MAX_REACH_FRACTION` of ``pi/nL``).
+SEARCH_REACH = 0.35
+MAX_REACH_FRACTION = 0.45
+#: A step stands out when its jump exceeds this many standard deviations of the sample-to-sample noise ...
+STEP_SIGMAS = 8.0
+#: ... and this many times the median jump of the samples near it (the signal's own slope) [-].
+STEP_LOCAL = 6.0
+#: Samples each side of a step whose jumps give its local median (the step's neighbours excluded) [-].
+LOCAL_SAMPLES = 8
+#: After a swap's step ``az`` is at the new leg's rigid level: the median over this time after it [s] ...
+POST_TIME = 0.015
+#: ... within this [m/s^2] or this share of the jump [-], whichever is larger.
+LEVEL_TOLERANCE = 0.5
+LEVEL_SHARE = 0.15
+#: Jumps tried per swap, largest first [-].
+MAX_CANDIDATES = 8
+#: Rigid-half phases (fractions of ``pi/nL``) whose median ``az`` is the rigid level: the end of the rigid
+#: half, which an IMU lagging by up to 0.6 of it leaves clear of the previous stance.
+LEVEL_SPAN = (-0.4, -0.05)
+#: IMU-encoder disagreement [s] above which the angle is corrected. Measured on clean simulated logs re-timed
+#: (docs/estimator.md): slip RMSE 0.032 as they are, 0.031-0.036 from -20 to +60 ms, 0.046 at -40 ms.
+TOLERANCE = 0.025
+#: Consistent steps needed before a correction (and kept in memory, the most recent) [-].
+MIN_STEPS = 5
+MEMORY = 9
+
+
+def swap_step(t: np.ndarray, az: np.ndarray, t_swap: float, reach_s: float, level: float) -> tuple[float, float]:
+    """The IMU's step of a leg swap within ``reach_s`` [s] of the encoder's swap at ``t_swap`` [s].
+
+    ``t`` [s] (increasing) and ``az`` [m/s^2]: consecutive samples around
+    the swap; ``level`` [m/s^2]: the rigid level of the new leg (what ``az``
+    settles to after a swap). A step is a jump of ``az`` between two
+    samples above :data:`STEP_SIGMAS` noise standard deviations (robust:
+    from the median absolute jump) and :data:`STEP_LOCAL` times the median
+    jump of its neighbours, after which ``az`` is at the rigid level (the
+    median over :data:`POST_TIME`, within :data:`LEVEL_TOLERANCE` or
+    :data:`LEVEL_SHARE` of the jump): a swap's, not a re-plant's after the
+    foot lost contact, which the model also makes at high slip. The largest
+    such step counts. Returns ``(offset, ratio)``: its time (midway between
+    its two samples) minus ``t_swap`` [s], positive when the IMU sees the
+    swap after the encoder, and its jump over the noise's standard deviation
+    [-]; ``offset`` is NaN when there is none (or too few samples).
+    """
+    if t.size < 2 * LOCAL_SAMPLES + 3:
+        return math.nan, math.nan
+    d = np.diff(az)
+    mid = 0.5 * (t[1:] + t[:-1])
+    inside = np.flatnonzero(np.abs(mid - t_swap) <= reach_s)
+    sigma = 1.4826 * float(np.median(np.abs(d - np.median(d))))
+    big = inside[np.abs(d[inside]) > STEP_SIGMAS * sigma]
+    if big.size == 0:
+        return math.nan, math.nan
+    post_n = max(2, int(round(POST_TIME / max(float(np.median(np.diff(t))), 1e-9))))
+    for j in big[np.argsort(-np.abs(d[big]))][:MAX_CANDIDATES].tolist():
+        jump = abs(float(d[j]))
+        near = np.abs(np.concatenate([d[max(0, j - LOCAL_SAMPLES - 1):max(0, j - 1)], d[j + 2:j + 2 + LOCAL_SAMPLES]]))
+        if near.size == 0 or not jump > STEP_LOCAL * float(np.median(near)):
+            continue
+        post = az[j + 1:j + 1 + post_n]
+        if post.size and abs(float(np.median(post)) - level) <= max(LEVEL_TOLERANCE, LEVEL_SHARE * jump):
+            return float(mid[j] - t_swap), jump / sigma if sigma > 0 else math.inf
+    return math.nan, math.nan
+
+
+class SwapTiming:
+    """Follows the IMU's step at each leg swap, cycle after cycle, and says how to correct the angle.
+
+    Feed each cycle that may be estimated, in order, with :meth:`add_cycle`
+    (its samples over the whole cycle, phases ``[-pi/nL, pi/nL)``, on the
+    angle as corrected so far); the swap between two consecutive cycles
+    (``k - 1`` and ``k``) is measured from the end of the first and the
+    start of the second. Each step found gives the IMU's whole offset from
+    the encoder (the correction in force added back), in time [s] and in
+    angle [rad]. Two explanations are weighed on the recent steps: a time
+    skew (the same offset in time whatever the leg speed) and an encoder
+    zero offset (the same in angle); the one more of them agree with wins
+    (the angle on a tie, as at a steady speed where both agree). Once
+    ``min_steps`` agree within ``tolerance`` [s] and the correction it
+    calls for (the angle, or the time offset times this cycle's leg speed)
+    differs from the one in force by more than ``tolerance`` times the leg
+    speed, :meth:`add_cycle` returns it. ``tolerance``, ``min_steps``,
+    ``memory``: :data:`TOLERANCE`, :data:`MIN_STEPS`, :data:`MEMORY`.
+    """
+
+    def __init__(self, n_legs: int, tolerance: float = TOLERANCE, min_steps: int = MIN_STEPS, memory: int = MEMORY):
+        if not (tolerance > 0 and 1 <= min_steps <= memory):
+            raise ValueError("tolerance must be > 0 and 1 <= min_steps <= memory")
+        self.half = math.pi / n_legs
+        self.reach = min(SEARCH_REACH, MAX_REACH_FRACTION * self.half)
+        self.tolerance = float(tolerance)
+        self.min_steps = int(min_steps)
+        self.steps: deque = deque(maxlen=int(memory))  # recent steps: (offset in time [s], in angle [rad], omega)
+        self.angle = 0.0  # the correction in force: angle taken off theta [rad]
+        self.model = None  # "time" or "angle" once a correction was made
+        self.offset = 0.0  # the offset that correction explains: [s] for "time", [rad] for "angle"
+        self.measured = 0  # swaps whose step was found
+        self.looked = 0  # swaps looked at
+        self._tail = None  # (k, t, az) of the previous cycle's end
+
+    def forget_tail(self) -> None:
+        """The next cycle does not follow the last one fed (the stream was cut or re-timed)."""
+        self._tail = None
+
+    def add_cycle(self, k: int, t: np.ndarray, az: np.ndarray, theta_phase: np.ndarray, omega: float) -> float | None:
+        """Cycle ``k``'s samples (``t`` [s], ``az`` [m/s^2], ``theta_phase`` [rad] on the corrected angle) at
+        leg speed ``omega`` [rad/s]. Returns the new correction (the angle to take off ``theta`` [rad], in
+        all, from the next sample on), or None to keep the one in force."""
+        head = theta_phase < -self.half + self.reach
+        if self._tail is not None and self._tail[0] == k - 1 and np.any(head) and omega > 0:
+            tt = np.concatenate([self._tail[1], t[head]])
+            aa = np.concatenate([self._tail[2], az[head]])
+            t_swap = 0.5 * (float(self._tail[1][-1]) + float(t[head][0]))
+            rigid = (theta_phase > LEVEL_SPAN[0] * self.half) & (theta_phase < LEVEL_SPAN[1] * self.half)
+            self.looked += 1
+            level = float(np.median(az[rigid])) if np.any(rigid) else math.nan
+            residual, _ = swap_step(tt, aa, t_swap, self.reach / omega, level)
+            if math.isfinite(residual):
+                self.measured += 1
+                self.steps.append((residual + self.angle / omega, residual * omega + self.angle, omega))
+        tail = theta_phase >= self.half - self.reach
+        self._tail = (k, t[tail].copy(), az[tail].copy()) if np.any(tail) else None
+        return self._decide(omega) if omega > 0 else None
+
+    def _decide(self, omega: float) -> float | None:
+        if len(self.steps) >= self.min_steps:
+            steps = np.asarray(self.steps)
+            t_med = float(np.median(steps[:, 0]))
+            a_med = float(np.median(steps[:, 1]))
+            t_agree = int(np.count_nonzero(np.abs(steps[:, 0] - t_med) <= self.tolerance))
+            a_agree = int(np.count_nonzero(np.abs(steps[:, 1] - a_med) <= self.tolerance * steps[:, 2]))
+            if max(t_agree, a_agree) >= self.min_steps:
+                self.model, self.offset = ("angle", a_med) if a_agree >= t_agree else ("time", t_med)
+        if self.model is None:
+            return None
+        target = self.offset if self.model == "angle" else self.offset * omega
+        if abs(target) <= self.tolerance * omega:
+            target = 0.0
+        if abs(target - self.angle) <= self.tolerance * omega:
+            return None
+        self.angle = target
+        self._tail = None  # the stream is re-timed from the next sample
+        return target

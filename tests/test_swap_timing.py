@@ -1,0 +1,152 @@
+"""The IMU's timing against the encoder, from the step at each leg swap: measured, and corrected online."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from slipest.model.params import StickSlipParams
+from slipest.model.scenario import Scenario
+from slipest.model.stream import simulate_stream
+from slipest.online import SlipEstimator
+from slipest.segmentation import CycleSegmenter
+from slipest.swap_timing import SwapTiming, swap_step
+
+
+def _log(effects=(), n=30, omega=None, rate=1000.0, seed=5):
+    rng = np.random.default_rng(seed)
+    slips = np.repeat(rng.uniform(0.05, 0.45, n // 3), 3)[:n]  # a new slip every 3 cycles
+    per_cycle = {"slip": slips} if omega is None else {"slip": slips, "omega": omega}
+    sc = Scenario.per_cycle(StickSlipParams(kS=900.0, phiS=0.55, phiD=0.4), **per_cycle)
+    run = simulate_stream(Scenario(cycles=sc.cycles, rate=rate, noise_g=0.01, seed=seed, effects=tuple(effects)))
+    return run, slips
+
+
+def _estimate(run, slips, **kw):
+    est = SlipEstimator(n_legs=4, **kw)
+    rows = est.push_many(run.t, run.az, run.theta) + est.finish()
+    late = [r for r in rows if r.ok and 15 <= r.cycle < len(slips)]
+    rmse = math.sqrt(np.mean([(r.slip - slips[r.cycle]) ** 2 for r in late]))
+    return est, rows, rmse
+
+
+SPEEDS = np.repeat([0.5, 0.9, 0.7, 1.0, 0.6], 6)
+
+
+# --- the step ------------------------------------------------------------------------------------
+
+
+def test_a_step_is_found_where_it_is_and_nothing_where_there_is_none():
+    rng = np.random.default_rng(0)
+    t = np.arange(0.0, 1.0, 0.001)
+    rigid = 9.81 + rng.normal(0.0, 0.1, t.size)  # the new leg's rigid level, with the IMU's noise
+    stance = 3.0 + 2.0 * np.sin(2 * np.pi * 5 * t)  # the end of the stick-slip, above it
+    az = rigid + np.where(t < 0.6205, stance, 0.0)  # the swap's step, 120 ms after the encoder's swap at 0.5 s
+    offset, ratio = swap_step(t, az, 0.5, 0.3, 9.81)
+    assert offset == pytest.approx(0.120, abs=0.001) and ratio > 15
+    assert math.isnan(swap_step(t, rigid + stance, 0.5, 0.3, 9.81)[0])  # a smooth signal and noise: no step
+    assert math.isnan(swap_step(t, az, 0.5, 0.1, 9.81)[0])  # the step is beyond the reach
+    # the foot lost contact (free fall, az near 0) and re-plants 60 ms before the swap: a larger jump, but not
+    # to the rigid level, so not the swap's
+    replant = az.copy()
+    replant[(t >= 0.40) & (t < 0.44)] = 0.1
+    assert swap_step(t, replant, 0.5, 0.3, 9.81)[0] == pytest.approx(0.120, abs=0.001)
+    smooth = az.copy()  # the step through a 4 Hz first-order low-pass: smoothed, nothing stands out
+    after = t >= 0.6205
+    smooth[after] = rigid[after] + stance[after] * np.exp(-(t[after] - 0.6205) / 0.04)
+    assert math.isnan(swap_step(t, smooth, 0.5, 0.3, 9.81)[0])
+
+
+def test_the_tracker_tells_a_time_skew_from_an_angle_offset_by_how_the_offset_moves_with_the_speed():
+    def feed(offset_of):  # synthetic cycles: the IMU's step offset_of(omega) [s] after the encoder's swap
+        tr = SwapTiming(4)
+        half, dt, corr, t0 = math.pi / 4, 0.001, None, 0.0
+        for k, om in enumerate(np.repeat([0.5, 1.0, 0.7], 4)):
+            ph = np.arange(-half, half, om * dt)
+            t = t0 + np.arange(ph.size) * dt
+            t0 = t[-1] + dt
+            az = 9.81 + np.random.default_rng(k).normal(0.0, 0.05, ph.size)
+            az[ph >= half - 0.5] += 4.0  # the stance ends 4 m/s^2 above the rigid level ...
+            late = offset_of(om) - tr.angle / om  # ... and the IMU shows it this late on the corrected angle
+            az[t - t[0] < late] += 4.0
+            out = tr.add_cycle(k, t, az, ph, om)
+            corr = out if out is not None else corr
+        return tr, corr
+
+    tr, corr = feed(lambda om: 0.2)  # 200 ms whatever the speed: a time skew
+    assert tr.model == "time" and tr.offset == pytest.approx(0.2, abs=0.002)
+    assert corr == pytest.approx(0.2 * 0.7, abs=0.002)  # the correction follows the leg speed
+    tr, corr = feed(lambda om: 0.15 / om)  # 0.15 rad of leg angle whatever the speed: an encoder offset
+    assert tr.model == "angle" and tr.offset == pytest.approx(0.15, abs=0.002) and corr == tr.offset
+
+
+# --- online, on simulated logs ----------------------------------------------------------------------
+
+
+def test_an_encoder_offset_is_measured_corrected_and_said():
+    run, slips = _log(({"name": "angle_offset", "offset": 0.15},))
+    est, rows, rmse = _estimate(run, slips)
+    c = est.counters
+    assert c["timing_corrections"] == 1 and c["timing_shift_rad"] == pytest.approx(0.15, abs=0.005)
+    assert "0.150 rad" in est.hints["timing"] and "encoder zero offset" in est.hints["timing"]
+    cycles = [r.cycle for r in rows]
+    assert cycles == sorted(set(cycles))  # every cycle once, in order, the re-timed one included
+    _, _, rmse_off = _estimate(run, slips, align_timing=False)
+    assert rmse < 0.075 < 0.1 < rmse_off  # measured: 0.066 corrected, 0.112 not
+
+
+def test_a_time_skew_is_corrected_at_every_leg_speed():
+    run, slips = _log(({"name": "time_skew", "skew": 0.2},), omega=SPEEDS)
+    est, rows, rmse = _estimate(run, slips)
+    assert "200 ms after the encoder" in est.hints["timing"] and "time skew" in est.hints["timing"]
+    assert est.counters["timing_shift_rad"] == pytest.approx(0.2 * SPEEDS[-1], abs=0.01)
+    _, _, rmse_off = _estimate(run, slips, align_timing=False)
+    assert rmse < 0.06 < 0.1 < rmse_off  # measured: 0.044 corrected, 0.140 not
+
+
+@pytest.mark.parametrize("rate", [1000.0, 200.0])
+def test_clean_logs_are_never_re_timed(rate):
+    run, slips = _log(omega=SPEEDS, rate=rate)
+    est, rows, _ = _estimate(run, slips)
+    assert est.counters["timing_corrections"] == 0 and "timing" not in est.hints
+    assert est.counters["swaps_measured"] >= 10  # the steps were there to be measured
+    _, rows_off, _ = _estimate(run, slips, align_timing=False)
+    assert _same(rows, rows_off)
+
+
+def _same(a, b):
+    def key(e):
+        return [e.cycle, e.quality] + [None if math.isnan(v) else v for v in (e.slip, e.slip_std, e.dphi, e.dphi_std)]
+
+    return [key(e) for e in a] == [key(e) for e in b]
+
+
+def test_push_and_push_many_agree_across_a_re_timing():
+    run, slips = _log(({"name": "angle_offset", "offset": -0.12},), n=15)
+    ref = run.slip  # the log's reference slip column
+    many = SlipEstimator(n_legs=4, use_reference=True)
+    a = many.push_many(run.t, run.az, run.theta, ref) + many.finish()
+    one = SlipEstimator(n_legs=4, use_reference=True)
+    b = []
+    for i in range(run.t.size):
+        b += one.push(float(run.t[i]), float(run.az[i]), float(run.theta[i]), float(ref[i]))
+    b += one.finish()
+    assert many.counters["timing_corrections"] == 1
+    assert _same(a, b) and [x.slip_ref for x in a] == [x.slip_ref for x in b]
+    assert many.counters == one.counters
+
+
+def test_resync_keeps_the_counts_and_the_cycle_numbering():
+    seg = CycleSegmenter(4, window=(-math.pi / 4, math.pi / 4))
+    t = np.arange(0.0, 30.0, 0.001)
+    theta = np.mod(0.63 * t + math.pi, 2 * math.pi) - math.pi  # wrapped angles
+    first = seg.push_many(t[:12000], np.full(12000, 9.81), theta[:12000])
+    seen = seg.counters["samples_seen"]
+    seg.resync()
+    assert seg.counters["samples_seen"] == seen
+    later = seg.push_many(t[12000:], np.full(t.size - 12000, 9.81), theta[12000:])
+    assert later[0].k == first[-1].k + 1 and later[0].quality == "partial"  # the open cycle was dropped
+    assert [c.k for c in later[1:]] == list(range(later[0].k + 1, later[0].k + len(later)))
+    assert all(c.quality == "ok" for c in later[1:])
