@@ -70,9 +70,12 @@ class CycleEstimator(ABC):
     omega_range: tuple[float, float]
 
     @abstractmethod
-    def update(self, features, slip_ref: float | None = None) -> CycleEstimate:
+    def update(self, features, slip_ref: float | None = None, widen: float = 1.0) -> CycleEstimate:
         """One cycle: its full feature row (:data:`slipest.features.FEATURE_NAMES` order and units) and,
         optionally, a reference slip [-] (a method that does not learn from references ignores it).
+        ``widen`` (>= 1): a variance factor the caller knows the cycle's likelihood needs, the data's own
+        path not being the model's (an IMU that smooths the signal); a method without a likelihood to
+        widen ignores it.
 
         Raises ``ValueError`` when the row cannot be estimated from (non-finite features the method reads).
         """

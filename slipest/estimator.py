@@ -384,9 +384,11 @@ class SoilSlipEstimator(CycleEstimator):
         starting from the clean value), at least 1; 1 with ``fit_typical`` inf."""
         return math.exp(self._log_fit) if self._log_fit > 0.0 else 1.0
 
-    def update(self, features, slip_ref: float | None = None) -> CycleEstimate:
+    def update(self, features, slip_ref: float | None = None, widen: float = 1.0) -> CycleEstimate:
         """One cycle: its full feature row (order of ``FEATURE_NAMES``; its ``omega`` and ``noise_smooth``
-        say what the cycle was measured at) and, optionally, a reference slip [-].
+        say what the cycle was measured at) and, optionally, a reference slip [-]. The likelihood is
+        widened by the larger of the running ``discrepancy`` and ``widen`` (>= 1; the caller's reason,
+        :class:`slipest.cycle_estimator.CycleEstimator`); ``discrepancy`` in the estimate is that factor.
 
         A row with non-finite modelled features raises ``ValueError``
         (the caller must not pass corrupted cycles; :mod:`slipest.online`
@@ -420,7 +422,7 @@ class SoilSlipEstimator(CycleEstimator):
         else:
             ref_k, ref_a = -1, 0.0
         skip = bool(f[_ONSET] >= self._no_onset)  # no break-away: no soil update (module docstring)
-        floor = self.discrepancy
+        floor = max(self.discrepancy, float(widen))
         slip, sd, change, misfit, best, dm, ds, km, ks, pm, pss, dm2, ds2 = self._step(
             self._w, self._moments, self.hazard, ref_k, ref_a, skip, floor).tolist()
         if math.isfinite(self.fit_typical) and best >= 0.0:  # the running discrepancy (module docstring)

@@ -24,13 +24,21 @@ A cycle with a few samples missing or unusable in short holes (see
 (:mod:`slipest.despike`) is estimated without them, with quality
 ``"repaired"`` and their count in ``n_repaired``.
 
-The IMU's timing against the encoder is checked on every leg swap
-(:mod:`slipest.swap_timing`): when the IMU sees the swaps consistently
-later or earlier than the encoder (an encoder zero offset, a time skew
-between their time stamps), the angle is corrected from then on (``theta``
-less the offset times the leg speed), the cycle being filled is dropped
-(the stream re-synchronises, counted in ``segmenter_resyncs``), and the
-``"timing"`` hint says by how much (``align_timing=False``: never).
+The IMU is checked against the encoder on every leg swap, where the hub's
+acceleration steps to the new leg's rigid level (:mod:`slipest.swap_timing`;
+``swap_checks=False``: never):
+
+* when the IMU sees the swaps consistently later or earlier than the
+  encoder (an encoder zero offset, a time skew between their time stamps),
+  the angle is corrected from then on (``theta`` less the offset, or the
+  skew times the leg speed), the cycle being filled is dropped (the stream
+  re-synchronises, counted in ``segmenter_resyncs``), and the ``"timing"``
+  hint says by how much;
+* when the IMU settles slowly after the recent swaps (a low-pass filter or
+  a soft mount the model does not know), each cycle's likelihood is widened
+  (:data:`slipest.swap_timing.SLUGGISH_WIDENING`) and the ``"imu"`` hint
+  says so; not with a calibrated rover model (``describes_imu_path``),
+  whose calibration learnt the rover's IMU.
 
 Methods (each a :class:`~slipest.cycle_estimator.CycleEstimator`):
 
@@ -81,6 +89,7 @@ from slipest.despike import outliers
 from slipest.features import INDEX, cycle_features, sample_noise
 from slipest.inverse.base import Soil
 from slipest.segmentation import CycleSegmenter
+from slipest import swap_timing
 from slipest.swap_timing import SwapTiming
 from slipest.units import G
 
@@ -356,7 +365,7 @@ class SlipEstimator:
         model=None,
         calibration: dict | None = None,
         noise: float | None = None,
-        align_timing: bool = True,
+        swap_checks: bool = True,
     ):
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, not {method!r}")
@@ -375,11 +384,13 @@ class SlipEstimator:
         # encoder angle offset from theta
         self._correct = getattr(model, "sample_correction", None)
         self._theta_offset = float(getattr(model, "angle_offset", 0.0))
+        # a calibrated rover model answers for its IMU's signal path: no widening for a sluggish IMU on top
+        self._imu_described = bool(getattr(model, "describes_imu_path", False))
         self._calibration = calibration
         if noise is not None and not (math.isfinite(noise) and noise >= 0):
             raise ValueError(f"noise={noise} g must be a finite number >= 0")
         self.noise = noise
-        self.align_timing = bool(align_timing)
+        self.swap_checks = bool(swap_checks)
         self.segmenter = CycleSegmenter(self.n_legs, **self._seg_opts)
         self._make_filter()
         self._reset_counts()
@@ -427,12 +438,13 @@ class SlipEstimator:
         self._noises: deque = deque(maxlen=NOISE_CYCLES)  # the last cycles' noise measures [g]
         self._noise_smooth = math.nan  # the last estimated cycle's smoothed noise [g]
         self._hints: dict[str, str] = {}
-        self._timing = SwapTiming(self.n_legs) if self.align_timing else None
+        self._timing = SwapTiming(self.n_legs) if self.swap_checks else None
         self._timing_shift = 0.0  # angle taken off theta for the IMU's timing so far [rad]
         self._timing_corrections = 0
         self._shift_pending = None  # a new correction decided on the cycle being estimated [rad]
         self._retimed_through = -(2**62)  # cycles up to this one were emitted before the last re-timing
         self._n_retime_dropped = 0  # cycles cut again after a re-timing, already emitted: not emitted twice
+        self._n_sluggish = 0  # cycles estimated while the IMU settled slowly after the swaps (widened)
         self._retimed_at = -1  # index, in the cycles _emit was given, of the one that re-timed theta
         #: The feature row (:data:`slipest.features.FEATURE_NAMES`) of the last cycle that reached the estimator.
         self.last_features = None
@@ -473,7 +485,9 @@ class SlipEstimator:
         ``timing_corrections`` and ``timing_shift_rad`` (how often the angle was corrected for the IMU's
         timing, and the correction in force [rad], see the module docstring), ``cycles_retimed`` (the rest
         of an estimated cycle cut again on the corrected angle: not emitted twice), ``swaps_measured`` (leg swaps whose
-        IMU step was found, of ``swaps_looked`` at), and the segmenter's counters prefixed ``segmenter_``."""
+        IMU step was found, of ``swaps_looked`` at), ``cycles_sluggish_imu`` (cycles that reached the estimator while
+        the IMU settled slowly after the swaps, their likelihood widened), and the segmenter's counters prefixed
+        ``segmenter_``."""
         c = {
             "samples": self._n_samples,
             "cycles": self._n_estimates,
@@ -491,6 +505,7 @@ class SlipEstimator:
             "cycles_retimed": self._n_retime_dropped,
             "swaps_measured": self._timing.measured if self._timing is not None else 0,
             "swaps_looked": self._timing.looked if self._timing is not None else 0,
+            "cycles_sluggish_imu": self._n_sluggish,
         }
         for k, v in sorted(self._n_flagged.items()):
             c[f"flagged_{k}"] = v
@@ -556,7 +571,16 @@ class SlipEstimator:
             return self._flagged(cyc, "features", ref)
         self.last_features = f
         use = self.use_reference and math.isfinite(ref)
-        r = self.filter.update(f, ref if use else None)
+        widen = 1.0
+        if self._timing is not None and self._timing.sluggish and not self._imu_described:
+            widen = swap_timing.SLUGGISH_WIDENING
+            self._n_sluggish += 1
+            self._hints.setdefault("imu", (
+                f"the IMU's signal settles slowly after each leg swap ({self._timing.settling:.0%} of the step "
+                "is left 10-60 ms after it, where an IMU that follows the hub leaves none): a low-pass filter "
+                "below about 7 Hz or a soft mount the model does not know; intervals widened, and slipest "
+                "calibrate would learn it"))
+        r = self.filter.update(f, ref if use else None, widen)
         if r.misfit > 1.0 and math.isnan(r.slip):  # not explained at all (SoilSlipEstimator.gross_misfit)
             self._off_model()
             return self._flagged(cyc, "misfit", ref, delta_a=float(f[_DELTA_A]), r=r, noise=float(f[_NOISE]))

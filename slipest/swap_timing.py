@@ -34,8 +34,10 @@ import numpy as np
 #: :data:`MAX_REACH_FRACTION` of ``pi/nL``).
 SEARCH_REACH = 0.35
 MAX_REACH_FRACTION = 0.45
-#: A step stands out when its jump exceeds this many standard deviations of the sample-to-sample noise ...
+#: A step stands out when its jump exceeds this many standard deviations of the sample-to-sample noise
+#: and this much [m/s^2] (a noiseless log) ...
 STEP_SIGMAS = 8.0
+STEP_FLOOR = 0.3
 #: ... and this many times the median jump of the samples near it (the signal's own slope) [-].
 STEP_LOCAL = 6.0
 #: Samples each side of a step whose jumps give its local median (the step's neighbours excluded) [-].
@@ -56,6 +58,20 @@ TOLERANCE = 0.025
 #: Consistent steps needed before a correction (and kept in memory, the most recent) [-].
 MIN_STEPS = 5
 MEMORY = 9
+#: How the IMU settles after a swap: the mean of ``az`` from :data:`SETTLE_SPAN` [s] after the encoder's
+#: swap, less the rigid level, over the step (the stance's last :data:`PRE_TIME` [s] less the rigid level):
+#: 0 for an IMU that follows the hub, about 0.5-1 through a low-pass at 3-4 Hz (0.37 for a first-order
+#: one at 5 Hz, 0.16 at 10 Hz, 0.05 at 20 Hz), negative for a ringing mount.
+SETTLE_SPAN = (0.010, 0.060)
+PRE_TIME = 0.015
+#: Steps counted for the settling: larger than this many noise standard deviations [-] and this [m/s^2].
+SETTLE_MIN_SIGMAS = 10.0
+SETTLE_FLOOR = 0.5
+#: The IMU is *sluggish* (a low-pass the model does not know) when the median settling of the recent steps
+#: (at least :data:`MIN_STEPS`, the last :data:`MEMORY`) exceeds this [-].
+SLUGGISH = 0.25
+#: Variance factor on the likelihood of a cycle while the IMU is sluggish [-] (docs/estimator.md).
+SLUGGISH_WIDENING = 9.0
 
 
 def swap_step(t: np.ndarray, az: np.ndarray, t_swap: float, reach_s: float, level: float) -> tuple[float, float]:
@@ -65,7 +81,7 @@ def swap_step(t: np.ndarray, az: np.ndarray, t_swap: float, reach_s: float, leve
     the swap; ``level`` [m/s^2]: the rigid level of the new leg (what ``az``
     settles to after a swap). A step is a jump of ``az`` between two
     samples above :data:`STEP_SIGMAS` noise standard deviations (robust:
-    from the median absolute jump) and :data:`STEP_LOCAL` times the median
+    from the median absolute jump) and :data:`STEP_FLOOR`, and :data:`STEP_LOCAL` times the median
     jump of its neighbours, after which ``az`` is at the rigid level (the
     median over :data:`POST_TIME`, within :data:`LEVEL_TOLERANCE` or
     :data:`LEVEL_SHARE` of the jump): a swap's, not a re-plant's after the
@@ -81,7 +97,7 @@ def swap_step(t: np.ndarray, az: np.ndarray, t_swap: float, reach_s: float, leve
     mid = 0.5 * (t[1:] + t[:-1])
     inside = np.flatnonzero(np.abs(mid - t_swap) <= reach_s)
     sigma = 1.4826 * float(np.median(np.abs(d - np.median(d))))
-    big = inside[np.abs(d[inside]) > STEP_SIGMAS * sigma]
+    big = inside[np.abs(d[inside]) > max(STEP_SIGMAS * sigma, STEP_FLOOR)]
     if big.size == 0:
         return math.nan, math.nan
     post_n = max(2, int(round(POST_TIME / max(float(np.median(np.diff(t))), 1e-9))))
@@ -127,9 +143,21 @@ class SwapTiming:
         self.angle = 0.0  # the correction in force: angle taken off theta [rad]
         self.model = None  # "time" or "angle" once a correction was made
         self.offset = 0.0  # the offset that correction explains: [s] for "time", [rad] for "angle"
+        self.settle: deque = deque(maxlen=int(memory))  # recent swaps' settling ratios [-]
         self.measured = 0  # swaps whose step was found
         self.looked = 0  # swaps looked at
         self._tail = None  # (k, t, az) of the previous cycle's end
+
+    @property
+    def sluggish(self) -> bool:
+        """The IMU settles slowly after the recent swaps (:data:`SLUGGISH`): its signal path smooths what the
+        model has sharp (a low-pass filter, a soft mount), and the features are not the model's."""
+        return len(self.settle) >= self.min_steps and float(np.median(np.asarray(self.settle))) > SLUGGISH
+
+    @property
+    def settling(self) -> float:
+        """Median settling ratio of the recent swaps (:data:`SETTLE_SPAN`) [-]; NaN before any."""
+        return float(np.median(np.asarray(self.settle))) if self.settle else math.nan
 
     def forget_tail(self) -> None:
         """The next cycle does not follow the last one fed (the stream was cut or re-timed)."""
@@ -147,6 +175,7 @@ class SwapTiming:
             rigid = (theta_phase > LEVEL_SPAN[0] * self.half) & (theta_phase < LEVEL_SPAN[1] * self.half)
             self.looked += 1
             level = float(np.median(az[rigid])) if np.any(rigid) else math.nan
+            self._settling(tt, aa, t_swap, level)
             residual, _ = swap_step(tt, aa, t_swap, self.reach / omega, level)
             if math.isfinite(residual):
                 self.measured += 1
@@ -154,6 +183,17 @@ class SwapTiming:
         tail = theta_phase >= self.half - self.reach
         self._tail = (k, t[tail].copy(), az[tail].copy()) if np.any(tail) else None
         return self._decide(omega) if omega > 0 else None
+
+    def _settling(self, t, az, t_swap: float, level: float) -> None:
+        pre = az[(t < t_swap) & (t >= t_swap - PRE_TIME)]
+        post = az[(t >= t_swap + SETTLE_SPAN[0]) & (t < t_swap + SETTLE_SPAN[1])]
+        if pre.size == 0 or post.size < 2 or not math.isfinite(level):
+            return
+        d = np.diff(az)
+        noise = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / math.sqrt(2.0)
+        jump = float(np.median(pre)) - level
+        if abs(jump) > max(SETTLE_MIN_SIGMAS * noise, SETTLE_FLOOR):
+            self.settle.append((float(np.mean(post)) - level) / jump)
 
     def _decide(self, omega: float) -> float | None:
         if len(self.steps) >= self.min_steps:
@@ -173,4 +213,5 @@ class SwapTiming:
             return None
         self.angle = target
         self._tail = None  # the stream is re-timed from the next sample
+        self.settle.clear()  # measured on the old timing
         return target

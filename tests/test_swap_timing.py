@@ -93,7 +93,7 @@ def test_an_encoder_offset_is_measured_corrected_and_said():
     assert "0.150 rad" in est.hints["timing"] and "encoder zero offset" in est.hints["timing"]
     cycles = [r.cycle for r in rows]
     assert cycles == sorted(set(cycles))  # every cycle once, in order, the re-timed one included
-    _, _, rmse_off = _estimate(run, slips, align_timing=False)
+    _, _, rmse_off = _estimate(run, slips, swap_checks=False)
     assert rmse < 0.075 < 0.1 < rmse_off  # measured: 0.066 corrected, 0.112 not
 
 
@@ -102,7 +102,7 @@ def test_a_time_skew_is_corrected_at_every_leg_speed():
     est, rows, rmse = _estimate(run, slips)
     assert "200 ms after the encoder" in est.hints["timing"] and "time skew" in est.hints["timing"]
     assert est.counters["timing_shift_rad"] == pytest.approx(0.2 * SPEEDS[-1], abs=0.01)
-    _, _, rmse_off = _estimate(run, slips, align_timing=False)
+    _, _, rmse_off = _estimate(run, slips, swap_checks=False)
     assert rmse < 0.06 < 0.1 < rmse_off  # measured: 0.044 corrected, 0.140 not
 
 
@@ -112,7 +112,7 @@ def test_clean_logs_are_never_re_timed(rate):
     est, rows, _ = _estimate(run, slips)
     assert est.counters["timing_corrections"] == 0 and "timing" not in est.hints
     assert est.counters["swaps_measured"] >= 10  # the steps were there to be measured
-    _, rows_off, _ = _estimate(run, slips, align_timing=False)
+    _, rows_off, _ = _estimate(run, slips, swap_checks=False)
     assert _same(rows, rows_off)
 
 
@@ -150,3 +150,44 @@ def test_resync_keeps_the_counts_and_the_cycle_numbering():
     assert later[0].k == first[-1].k + 1 and later[0].quality == "partial"  # the open cycle was dropped
     assert [c.k for c in later[1:]] == list(range(later[0].k + 1, later[0].k + len(later)))
     assert all(c.quality == "ok" for c in later[1:])
+
+
+# --- the IMU's settling after a swap ----------------------------------------------------------------
+
+
+def _settling_tracker(settle):
+    """A tracker fed 8 synthetic cycles whose IMU leaves ``settle(t)`` [share of the step] after each swap."""
+    tr = SwapTiming(4)
+    half, dt, om, t0 = math.pi / 4, 0.001, 0.63, 0.0
+    for k in range(8):
+        ph = np.arange(-half, half, om * dt)
+        t = t0 + np.arange(ph.size) * dt
+        t0 = t[-1] + dt
+        az = 9.81 + np.random.default_rng(k).normal(0.0, 0.05, ph.size)
+        az[ph >= half - 0.5] += 4.0  # the stance ends 4 m/s^2 above the rigid level
+        az += 4.0 * settle(t - t[0])  # what the IMU still shows of it after the swap
+        tr.add_cycle(k, t, az, ph, om)
+    return tr
+
+
+def test_an_imu_that_settles_slowly_after_the_swaps_is_called_sluggish_and_a_prompt_or_ringing_one_is_not():
+    slow = _settling_tracker(lambda s: np.exp(-s / 0.04))  # a first-order low-pass at 4 Hz
+    assert slow.sluggish and 0.4 < slow.settling < 0.6
+    prompt = _settling_tracker(lambda s: 0.0 * s)
+    assert not prompt.sluggish and abs(prompt.settling) < 0.02
+    dlpf = _settling_tracker(lambda s: np.exp(-s / 0.008))  # an anti-alias filter at 20 Hz: harmless, not flagged
+    assert not dlpf.sluggish and dlpf.settling < 0.1
+    ringing = _settling_tracker(lambda s: -0.5 * np.exp(-s / 0.2) * np.cos(2 * np.pi * 11 * s))  # a resonant mount
+    assert not ringing.sluggish and len(ringing.settle) >= 5
+
+
+def test_a_low_pass_imu_widens_the_intervals_and_says_so():
+    run, slips = _log(({"name": "imu_lowpass", "cutoff": 4.0, "order": 2},))
+    est, rows, _ = _estimate(run, slips)
+    assert est.counters["cycles_sluggish_imu"] >= 20 and "low-pass" in est.hints["imu"]
+    late = [r for r in rows if r.ok and r.cycle >= 15]
+    assert all(r.discrepancy >= 9.0 for r in late)
+    _, rows_off, _ = _estimate(run, slips, swap_checks=False)
+    std = np.median([r.slip_std for r in late])
+    std_off = np.median([r.slip_std for r in rows_off if r.ok and r.cycle >= 15])
+    assert std > 1.5 * std_off

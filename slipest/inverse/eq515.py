@@ -195,7 +195,7 @@ class Eq515Tracker(CycleEstimator):
                 used = True
         return slip, slip_std, self.dphi, self.dphi_std, used
 
-    def update(self, features, slip_ref: float | None = None) -> CycleEstimate:
+    def update(self, features, slip_ref: float | None = None, widen: float = 1.0) -> CycleEstimate:
         da = float(np.asarray(features, dtype=float)[INDEX["delta_a"]])
         if not math.isfinite(da):
             raise ValueError("non-finite Da: this cycle cannot be estimated")

@@ -106,6 +106,13 @@ class RoverSurrogate(FeatureSurrogate):
         return cls(**own, discrepancy=discrepancy, extra_cov=np.asarray(extra_cov, dtype=float), **rover)
 
     @property
+    def describes_imu_path(self) -> bool:
+        """True: the calibration learnt this rover's IMU as its testbed logs show it, and checked the intervals
+        on held-out cycles, so the online estimator does not widen them again for an IMU that settles slowly
+        after the leg swaps (:mod:`slipest.swap_timing`)."""
+        return True
+
+    @property
     def sample_correction(self):
         """``correct(theta_phase [rad], az [m/s^2]) -> az`` removing the learnt disturbance from a cycle's
         samples, or None when the rover has none."""
