@@ -97,6 +97,8 @@ from slipest.units import G
 METHODS = ("default", "eq515")
 #: Qualities of an estimated cycle.
 ESTIMATED = ("ok", "repaired")
+#: Hints that say the data differ from the model, not that the input is wrong ("fit" aside).
+MODEL_HINTS = ("imu",)
 #: Cycles whose noise measures make the running noise estimate (their median) [-].
 NOISE_CYCLES = 9
 _DELTA_A, _NOISE, _NOISE_SMOOTH = INDEX["delta_a"], INDEX["noise"], INDEX["noise_smooth"]
@@ -453,7 +455,8 @@ class SlipEstimator:
     def hints(self) -> dict:
         """What looks wrong with the input, once per kind: a sentence for people naming the likely mistake
         (``"units"``, ``"degrees"``, ``"timing"``: the IMU and the encoder disagree on the leg swaps and the
-        angle was corrected), or saying that the data do not fit the model (``"fit"``, from
+        angle was corrected), saying how the IMU differs from the model's (``"imu"``: it does not settle
+        after the leg swaps, see the module docstring; one of :data:`MODEL_HINTS`), or saying that the data do not fit the model (``"fit"``, from
         :func:`fit_advice` as soon as it holds)."""
         return dict(self._hints)
 
@@ -557,7 +560,7 @@ class SlipEstimator:
             self._hints.setdefault("units", _units_hint(gravity))
             return self._flagged(cyc, "units", ref)
         if self._timing is not None:
-            self._shift_pending = self._timing.add_cycle(cyc.k, tt, az, ph, omega)
+            self._shift_pending = self._timing.add_cycle(cyc.k, tt, az, ph, omega, self.noise_estimate * G)
         if self.noise is None:  # measured only when not given (noise_estimate then ignores the measures)
             measured = sample_noise(ph, az, n_legs=self.n_legs)
             if math.isfinite(measured):
@@ -576,10 +579,10 @@ class SlipEstimator:
             widen = swap_timing.SLUGGISH_WIDENING
             self._n_sluggish += 1
             self._hints.setdefault("imu", (
-                f"the IMU's signal settles slowly after each leg swap ({self._timing.settling:.0%} of the step "
-                "is left 10-60 ms after it, where an IMU that follows the hub leaves none): a low-pass filter "
-                "below about 7 Hz or a soft mount the model does not know; intervals widened, and slipest "
-                "calibrate would learn it"))
+                "after each leg swap the IMU does not settle at the new leg's rigid level as the model's does "
+                f"({self._timing.settling:.0%} of the step is left 10-60 ms after it, where the model leaves "
+                "none): an IMU low-pass filter (below about 7 Hz), a soft mount or touchdown impacts the model "
+                "does not know; intervals widened, and slipest calibrate would learn it"))
         r = self.filter.update(f, ref if use else None, widen)
         if r.misfit > 1.0 and math.isnan(r.slip):  # not explained at all (SoilSlipEstimator.gross_misfit)
             self._off_model()

@@ -26,8 +26,10 @@ Units: t [s], az [m/s^2], theta and phases [rad], leg speed [rad/s].
 from __future__ import annotations
 
 import math
+import statistics
 from collections import deque
 
+import numba
 import numpy as np
 
 #: How far from the encoder's swap a step is looked for, each side [rad of leg angle] (at most
@@ -74,42 +76,79 @@ SLUGGISH = 0.25
 SLUGGISH_WIDENING = 9.0
 
 
-def swap_step(t: np.ndarray, az: np.ndarray, t_swap: float, reach_s: float, level: float) -> tuple[float, float]:
+@numba.njit(cache=True)
+def jump_sigma(d: np.ndarray) -> float:
+    """Robust standard deviation of the sample-to-sample jumps ``d`` of ``az`` [m/s^2] (1.4826 times their
+    median absolute value: the noise's jumps, the signal's few large ones left out); NaN for none."""
+    if d.size == 0:
+        return math.nan
+    return 1.4826 * np.median(np.abs(d))
+
+
+@numba.njit(cache=True)
+def _swap_step(t, az, t_swap, reach_s, level, sigma):
+    n = t.size
+    d = az[1:] - az[:-1]
+    if not sigma >= 0.0:
+        sigma = jump_sigma(d)
+    thr = max(STEP_SIGMAS * sigma, STEP_FLOOR)
+    cand = np.empty(n - 1, np.int64)
+    m = 0
+    for j in range(n - 1):
+        if abs(0.5 * (t[j] + t[j + 1]) - t_swap) <= reach_s and abs(d[j]) > thr:
+            cand[m] = j
+            m += 1
+    if m == 0:
+        return math.nan, math.nan
+    cand = cand[:m]
+    cand = cand[np.argsort(-np.abs(d[cand]))]
+    post_n = max(2, int(round(POST_TIME / max((t[n - 1] - t[0]) / (n - 1), 1e-9))))  # mean sample period
+    near = np.empty(2 * LOCAL_SAMPLES)
+    for c in range(min(m, MAX_CANDIDATES)):
+        j = cand[c]
+        jump = abs(d[j])
+        q = 0
+        for i in range(max(0, j - LOCAL_SAMPLES - 1), max(0, j - 1)):
+            near[q] = abs(d[i])
+            q += 1
+        for i in range(j + 2, min(n - 1, j + 2 + LOCAL_SAMPLES)):
+            near[q] = abs(d[i])
+            q += 1
+        if q == 0 or not jump > STEP_LOCAL * np.median(near[:q]):
+            continue
+        post = az[j + 1:min(n, j + 1 + post_n)]
+        if post.size and abs(np.median(post) - level) <= max(LEVEL_TOLERANCE, LEVEL_SHARE * jump):
+            return 0.5 * (t[j] + t[j + 1]) - t_swap, jump / sigma if sigma > 0 else math.inf
+    return math.nan, math.nan
+
+
+def swap_step(t: np.ndarray, az: np.ndarray, t_swap: float, reach_s: float, level: float,
+              sigma: float | None = None) -> tuple[float, float]:
     """The IMU's step of a leg swap within ``reach_s`` [s] of the encoder's swap at ``t_swap`` [s].
 
     ``t`` [s] (increasing) and ``az`` [m/s^2]: consecutive samples around
     the swap; ``level`` [m/s^2]: the rigid level of the new leg (what ``az``
     settles to after a swap). A step is a jump of ``az`` between two
-    samples above :data:`STEP_SIGMAS` noise standard deviations (robust:
-    from the median absolute jump) and :data:`STEP_FLOOR`, and :data:`STEP_LOCAL` times the median
-    jump of its neighbours, after which ``az`` is at the rigid level (the
-    median over :data:`POST_TIME`, within :data:`LEVEL_TOLERANCE` or
-    :data:`LEVEL_SHARE` of the jump): a swap's, not a re-plant's after the
-    foot lost contact, which the model also makes at high slip. The largest
-    such step counts. Returns ``(offset, ratio)``: its time (midway between
-    its two samples) minus ``t_swap`` [s], positive when the IMU sees the
-    swap after the encoder, and its jump over the noise's standard deviation
-    [-]; ``offset`` is NaN when there is none (or too few samples).
+    samples above :data:`STEP_SIGMAS` noise standard deviations (``sigma``,
+    default :func:`jump_sigma` of the samples' jumps) and :data:`STEP_FLOOR`,
+    and :data:`STEP_LOCAL` times the median jump of its neighbours, after
+    which ``az`` is at the rigid level (the median over :data:`POST_TIME`,
+    within :data:`LEVEL_TOLERANCE` or :data:`LEVEL_SHARE` of the jump): a
+    swap's, not a re-plant's after the foot lost contact, which the model
+    also makes at high slip. The largest such step counts (of the
+    :data:`MAX_CANDIDATES` largest jumps). Returns ``(offset, ratio)``: its
+    time (midway between its two samples) minus ``t_swap`` [s], positive
+    when the IMU sees the swap after the encoder, and its jump over the
+    noise's standard deviation [-]; ``offset`` is NaN when there is none
+    (or too few samples). Compiled (numba): about 10 us for 2000 samples.
     """
-    if t.size < 2 * LOCAL_SAMPLES + 3:
+    t = np.ascontiguousarray(t, dtype=np.float64)
+    az = np.ascontiguousarray(az, dtype=np.float64)
+    if t.size < 2 * LOCAL_SAMPLES + 3 or t.size != az.size:
         return math.nan, math.nan
-    d = np.diff(az)
-    mid = 0.5 * (t[1:] + t[:-1])
-    inside = np.flatnonzero(np.abs(mid - t_swap) <= reach_s)
-    sigma = 1.4826 * float(np.median(np.abs(d - np.median(d))))
-    big = inside[np.abs(d[inside]) > max(STEP_SIGMAS * sigma, STEP_FLOOR)]
-    if big.size == 0:
-        return math.nan, math.nan
-    post_n = max(2, int(round(POST_TIME / max(float(np.median(np.diff(t))), 1e-9))))
-    for j in big[np.argsort(-np.abs(d[big]))][:MAX_CANDIDATES].tolist():
-        jump = abs(float(d[j]))
-        near = np.abs(np.concatenate([d[max(0, j - LOCAL_SAMPLES - 1):max(0, j - 1)], d[j + 2:j + 2 + LOCAL_SAMPLES]]))
-        if near.size == 0 or not jump > STEP_LOCAL * float(np.median(near)):
-            continue
-        post = az[j + 1:j + 1 + post_n]
-        if post.size and abs(float(np.median(post)) - level) <= max(LEVEL_TOLERANCE, LEVEL_SHARE * jump):
-            return float(mid[j] - t_swap), jump / sigma if sigma > 0 else math.inf
-    return math.nan, math.nan
+    offset, ratio = _swap_step(t, az, float(t_swap), float(reach_s), float(level),
+                               math.nan if sigma is None else float(sigma))
+    return float(offset), float(ratio)
 
 
 class SwapTiming:
@@ -147,59 +186,64 @@ class SwapTiming:
         self.measured = 0  # swaps whose step was found
         self.looked = 0  # swaps looked at
         self._tail = None  # (k, t, az) of the previous cycle's end
+        self._fresh = False  # a step was added since the explanations were last weighed
 
     @property
     def sluggish(self) -> bool:
         """The IMU settles slowly after the recent swaps (:data:`SLUGGISH`): its signal path smooths what the
         model has sharp (a low-pass filter, a soft mount), and the features are not the model's."""
-        return len(self.settle) >= self.min_steps and float(np.median(np.asarray(self.settle))) > SLUGGISH
+        return len(self.settle) >= self.min_steps and statistics.median(self.settle) > SLUGGISH
 
     @property
     def settling(self) -> float:
         """Median settling ratio of the recent swaps (:data:`SETTLE_SPAN`) [-]; NaN before any."""
-        return float(np.median(np.asarray(self.settle))) if self.settle else math.nan
+        return statistics.median(self.settle) if self.settle else math.nan
 
     def forget_tail(self) -> None:
         """The next cycle does not follow the last one fed (the stream was cut or re-timed)."""
         self._tail = None
 
-    def add_cycle(self, k: int, t: np.ndarray, az: np.ndarray, theta_phase: np.ndarray, omega: float) -> float | None:
+    def add_cycle(self, k: int, t: np.ndarray, az: np.ndarray, theta_phase: np.ndarray, omega: float,
+                  noise: float = math.nan) -> float | None:
         """Cycle ``k``'s samples (``t`` [s], ``az`` [m/s^2], ``theta_phase`` [rad] on the corrected angle) at
-        leg speed ``omega`` [rad/s]. Returns the new correction (the angle to take off ``theta`` [rad], in
-        all, from the next sample on), or None to keep the one in force."""
+        leg speed ``omega`` [rad/s]; ``noise``: the IMU noise's standard deviation when known [m/s^2] (else
+        measured from the samples' jumps, :func:`jump_sigma`). Returns the new correction (the angle to take
+        off ``theta`` [rad], in all, from the next sample on), or None to keep the one in force."""
         head = theta_phase < -self.half + self.reach
         if self._tail is not None and self._tail[0] == k - 1 and np.any(head) and omega > 0:
             tt = np.concatenate([self._tail[1], t[head]])
             aa = np.concatenate([self._tail[2], az[head]])
             t_swap = 0.5 * (float(self._tail[1][-1]) + float(t[head][0]))
-            rigid = (theta_phase > LEVEL_SPAN[0] * self.half) & (theta_phase < LEVEL_SPAN[1] * self.half)
+            rigid = az[(theta_phase > LEVEL_SPAN[0] * self.half) & (theta_phase < LEVEL_SPAN[1] * self.half)]
             self.looked += 1
-            level = float(np.median(az[rigid])) if np.any(rigid) else math.nan
-            self._settling(tt, aa, t_swap, level)
-            residual, _ = swap_step(tt, aa, t_swap, self.reach / omega, level)
+            level = float(np.mean(rigid)) if rigid.size else math.nan  # (outliers are out: slipest.despike)
+            sigma = math.sqrt(2.0) * noise if noise > 0 else float(jump_sigma(aa[1:] - aa[:-1]))
+            self._settling(tt, aa, t_swap, level, sigma / math.sqrt(2.0))
+            residual, _ = swap_step(tt, aa, t_swap, self.reach / omega, level, sigma)
             if math.isfinite(residual):
                 self.measured += 1
                 self.steps.append((residual + self.angle / omega, residual * omega + self.angle, omega))
+                self._fresh = True
         tail = theta_phase >= self.half - self.reach
         self._tail = (k, t[tail].copy(), az[tail].copy()) if np.any(tail) else None
         return self._decide(omega) if omega > 0 else None
 
-    def _settling(self, t, az, t_swap: float, level: float) -> None:
-        pre = az[(t < t_swap) & (t >= t_swap - PRE_TIME)]
-        post = az[(t >= t_swap + SETTLE_SPAN[0]) & (t < t_swap + SETTLE_SPAN[1])]
+    def _settling(self, t, az, t_swap: float, level: float, noise: float) -> None:
+        i = int(np.searchsorted(t, t_swap))  # the first sample after the swap
+        pre = az[int(np.searchsorted(t, t_swap - PRE_TIME)):i]
+        post = az[int(np.searchsorted(t, t_swap + SETTLE_SPAN[0])):int(np.searchsorted(t, t_swap + SETTLE_SPAN[1]))]
         if pre.size == 0 or post.size < 2 or not math.isfinite(level):
             return
-        d = np.diff(az)
-        noise = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / math.sqrt(2.0)
-        jump = float(np.median(pre)) - level
+        jump = statistics.median(pre.tolist()) - level
         if abs(jump) > max(SETTLE_MIN_SIGMAS * noise, SETTLE_FLOOR):
             self.settle.append((float(np.mean(post)) - level) / jump)
 
     def _decide(self, omega: float) -> float | None:
-        if len(self.steps) >= self.min_steps:
+        if self._fresh and len(self.steps) >= self.min_steps:
+            self._fresh = False
             steps = np.asarray(self.steps)
-            t_med = float(np.median(steps[:, 0]))
-            a_med = float(np.median(steps[:, 1]))
+            t_med = statistics.median(steps[:, 0].tolist())
+            a_med = statistics.median(steps[:, 1].tolist())
             t_agree = int(np.count_nonzero(np.abs(steps[:, 0] - t_med) <= self.tolerance))
             a_agree = int(np.count_nonzero(np.abs(steps[:, 1] - a_med) <= self.tolerance * steps[:, 2]))
             if max(t_agree, a_agree) >= self.min_steps:

@@ -184,7 +184,7 @@ def test_an_imu_that_settles_slowly_after_the_swaps_is_called_sluggish_and_a_pro
 def test_a_low_pass_imu_widens_the_intervals_and_says_so():
     run, slips = _log(({"name": "imu_lowpass", "cutoff": 4.0, "order": 2},))
     est, rows, _ = _estimate(run, slips)
-    assert est.counters["cycles_sluggish_imu"] >= 20 and "low-pass" in est.hints["imu"]
+    assert est.counters["cycles_sluggish_imu"] >= 20 and "low-pass filter" in est.hints["imu"]
     late = [r for r in rows if r.ok and r.cycle >= 15]
     assert all(r.discrepancy >= 9.0 for r in late)
     _, rows_off, _ = _estimate(run, slips, swap_checks=False)

@@ -40,7 +40,7 @@ import numpy as np
 from slipest.io.device_stream import STUCK_TIME
 from slipest.io.log_csv import LogFormatError, LogReader
 from slipest.io.rosbag import BagTopics
-from slipest.online import SlipEstimator, fit_advice
+from slipest.online import MODEL_HINTS, SlipEstimator, fit_advice
 from slipest.offline.logs import KINDS, detect_kind
 
 __all__ = ["TABLE_COLUMNS", "Replay", "ReplayOptions", "ReplayResult", "TruthSummary", "WheelTally", "error_row",
@@ -217,7 +217,8 @@ class ReplayResult:
     def _advice_lines(prefix: str, w: "WheelTally") -> list[str]:
         """What looks wrong with a wheel's data, and a model that does not fit it, for people."""
         c = w.estimator_counters
-        lines = [f"replay: {prefix}the input looks wrong: {text}" for kind, text in w.hints.items() if kind != "fit"]
+        lines = [f"replay: {prefix}" + (text if kind in MODEL_HINTS else f"the input looks wrong: {text}")
+                 for kind, text in w.hints.items() if kind != "fit"]
         advice = fit_advice(c.get("cycles_ok", 0) + c.get("flagged_misfit", 0), c.get("cycles_off_model", 0))
         if advice:
             lines.append(f"replay: {prefix}{advice}")
