@@ -618,7 +618,9 @@ class SlipEstimator:
         for i, (cyc, ref) in enumerate(zip(cycles, refs)):
             if cyc.k <= self._retimed_through:  # the rest of a cycle already estimated, seen again re-timed
                 self._n_retime_dropped += 1
+                self._retimed_through = -(2**62)  # only the first cycle after a re-timing (a restart may go back)
                 continue
+            self._retimed_through = -(2**62)
             if self._timing is not None and cyc.quality != "ok":
                 self._timing.forget_tail()
             e = self._estimate(cyc, ref)

@@ -191,3 +191,15 @@ def test_a_low_pass_imu_widens_the_intervals_and_says_so():
     std = np.median([r.slip_std for r in late])
     std_off = np.median([r.slip_std for r in rows_off if r.ok and r.cycle >= 15])
     assert std > 1.5 * std_off
+
+
+def test_cycles_after_a_restart_are_emitted_after_a_re_timing():
+    # a re-timing drops only the rest of the cycle it re-cut; a device restart later goes back to low cycle
+    # numbers, and those cycles are new
+    run, slips = _log(({"name": "angle_offset", "offset": 0.15},))
+    est = SlipEstimator(n_legs=4)
+    first = est.push_many(run.t, run.az, run.theta)
+    assert est.counters["timing_corrections"] == 1
+    second = est.push_many(run.t + run.t[-1] + 1.0, run.az, run.theta)  # the device restarted: theta from 0
+    assert sum(e.ok for e in second) >= 25 and est.counters["cycles_retimed"] == 1
+    assert min(e.cycle for e in second) < max(e.cycle for e in first)
