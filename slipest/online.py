@@ -444,6 +444,7 @@ class SlipEstimator:
         self._timing_shift = 0.0  # angle taken off theta for the IMU's timing so far [rad]
         self._timing_corrections = 0
         self._shift_pending = None  # a new correction decided on the cycle being estimated [rad]
+        self._timing_job = None  # the last estimated cycle's samples for the swap checks, not yet looked at
         self._retimed_through = -(2**62)  # cycles up to this one were emitted before the last re-timing
         self._n_retime_dropped = 0  # cycles cut again after a re-timing, already emitted: not emitted twice
         self._n_sluggish = 0  # cycles estimated while the IMU settled slowly after the swaps (widened)
@@ -559,8 +560,8 @@ class SlipEstimator:
         if math.isfinite(gravity) and not GRAVITY_RANGE[0] <= gravity <= GRAVITY_RANGE[1]:
             self._hints.setdefault("units", _units_hint(gravity))
             return self._flagged(cyc, "units", ref)
-        if self._timing is not None:
-            self._shift_pending = self._timing.add_cycle(cyc.k, tt, az, ph, omega, self.noise_estimate * G)
+        if self._timing is not None:  # looked at after the estimate is out (_run_timing_job)
+            self._timing_job = (cyc.k, tt, az, ph, omega, self.noise_estimate * G)
         if self.noise is None:  # measured only when not given (noise_estimate then ignores the measures)
             measured = sample_noise(ph, az, n_legs=self.n_legs)
             if math.isfinite(measured):
@@ -611,11 +612,16 @@ class SlipEstimator:
             if advice:
                 self._hints["fit"] = advice
 
-    def _emit(self, cycles, refs) -> list:
-        """The estimates of ``cycles``, in order; stops after a cycle that re-timed theta (the later ones were
-        cut on the old angle: the caller pushes their samples again, see :meth:`push_many`)."""
+    def _emit(self, cycles, refs, defer: bool = False) -> list:
+        """The estimates of ``cycles``, in order. After each, the swap checks look at the cycle (now, or with
+        ``defer`` when the next sample comes, :meth:`push`: off the closing sample's latency); when they re-time
+        theta, stops there (the later cycles were cut on the old angle: the caller pushes their samples again,
+        see :meth:`push_many`; ``_retimed_at``: the index of the cycle that re-timed)."""
         out = []
         for i, (cyc, ref) in enumerate(zip(cycles, refs)):
+            if self._run_timing_job():  # a deferred look at the previous cycle re-timed theta before this one
+                self._retimed_at = i - 1
+                break
             if cyc.k <= self._retimed_through:  # the rest of a cycle already estimated, seen again re-timed
                 self._n_retime_dropped += 1
                 self._retimed_through = -(2**62)  # only the first cycle after a re-timing (a restart may go back)
@@ -628,11 +634,23 @@ class SlipEstimator:
             if self.on_estimate is not None:
                 self.on_estimate(e)
             out.append(e)
-            if self._shift_pending is not None:
-                self._retime(e.cycle)
+            if not defer and self._run_timing_job():
                 self._retimed_at = i
                 break
         return out
+
+    def _run_timing_job(self) -> bool:
+        """The swap checks on the last estimated cycle, if not done yet; True when they re-timed theta (from
+        the sample after that cycle's closing one)."""
+        job, self._timing_job = self._timing_job, None
+        if job is None:
+            return False
+        shift = self._timing.add_cycle(*job)
+        if shift is None:
+            return False
+        self._shift_pending = shift
+        self._retime(job[0])
+        return True
 
     def _retime(self, cycle: int) -> None:
         """Take the new timing correction off theta from the next sample on (the caller re-synchronises the
@@ -657,12 +675,14 @@ class SlipEstimator:
         Returns the estimates of the cycles it closed (usually none, at most one or two).
         """
         self._n_samples += 1
+        if self._timing_job is not None and self._run_timing_job():  # re-timed: this sample starts the stream again
+            self.segmenter.resync()
         cycles = self.segmenter.push(t, az, theta - self._theta_offset)
         out = []
         if cycles:
             n_before = self._timing_corrections
-            out = self._emit(cycles, [self._ref.take()] + [math.nan] * (len(cycles) - 1))
-            if self._timing_corrections != n_before:  # re-timed: the next sample starts the stream again
+            out = self._emit(cycles, [self._ref.take()] + [math.nan] * (len(cycles) - 1), defer=True)
+            if self._timing_corrections != n_before:  # re-timed (two cycles closed at once): as above
                 self.segmenter.resync()
             last = cycles[-1]
             self._prefetch_at = last.t_end + PREFETCH_LEAD * (last.t_end - last.t_start)
@@ -692,6 +712,8 @@ class SlipEstimator:
     def _push_chunk(self, t, az, theta, slip_ref) -> list:
         """:meth:`push_many` after the checks; when a cycle re-times theta, the samples after its closing
         sample are pushed again on the new angle, as :meth:`push` would have taken them."""
+        if self._timing_job is not None and self._run_timing_job():  # left by push(): re-timed before this chunk
+            self.segmenter.resync()
         shifted = np.asarray(theta, dtype=np.float64) - self._theta_offset if self._theta_offset else theta
         snap = self.segmenter.snapshot() if self._timing is not None else None
         cycles = self.segmenter.push_many(t, az, shifted)
@@ -746,7 +768,9 @@ class SlipEstimator:
         pushed afterwards start a new stream; the soil filter keeps what it learnt."""
         cycles = self.segmenter.finish()
         ref = self._ref.take()
-        return self._emit(cycles, [ref] * len(cycles))
+        out = self._emit(cycles, [ref] * len(cycles))
+        self._run_timing_job()  # (the next sample starts a new stream anyway)
+        return out
 
     def iter_estimates(self, chunks: Iterable) -> Iterator[Estimate]:
         """Estimates over an iterable of sample chunks, as they come.
