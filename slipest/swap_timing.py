@@ -71,7 +71,7 @@ SETTLE_MIN_SIGMAS = 10.0
 SETTLE_FLOOR = 0.5
 #: The IMU is *sluggish* (a low-pass the model does not know) when the median settling of the recent steps
 #: (at least :data:`MIN_STEPS`, the last :data:`MEMORY`) exceeds this [-].
-SLUGGISH = 0.25
+SLUGGISH = 0.12
 #: Variance factor on the likelihood of a cycle while the IMU is sluggish [-] (docs/estimator.md).
 SLUGGISH_WIDENING = 9.0
 

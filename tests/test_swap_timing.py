@@ -177,8 +177,10 @@ def test_an_imu_that_settles_slowly_after_the_swaps_is_called_sluggish_and_a_pro
     assert not prompt.sluggish and abs(prompt.settling) < 0.02
     dlpf = _settling_tracker(lambda s: np.exp(-s / 0.008))  # an anti-alias filter at 20 Hz: harmless, not flagged
     assert not dlpf.sluggish and dlpf.settling < 0.1
-    ringing = _settling_tracker(lambda s: -0.5 * np.exp(-s / 0.2) * np.cos(2 * np.pi * 11 * s))  # a resonant mount
-    assert not ringing.sluggish and len(ringing.settle) >= 5
+    # a resonant mount overshooting below the rigid level, as the simulated bracket resonance does (its logs'
+    # ratios: -0.32 to -0.35)
+    ringing = _settling_tracker(lambda s: -0.6 * np.exp(-s / 0.2) * np.sin(2 * np.pi * 11 * s))
+    assert not ringing.sluggish and ringing.settling < -0.1 and len(ringing.settle) >= 5
 
 
 def test_a_low_pass_imu_widens_the_intervals_and_says_so():
