@@ -89,8 +89,7 @@ from slipest.despike import outliers
 from slipest.features import INDEX, cycle_features, sample_noise
 from slipest.inverse.base import Soil
 from slipest.segmentation import CycleSegmenter
-from slipest import swap_timing
-from slipest.swap_timing import SwapTiming
+from slipest.swap_timing import SLUGGISH_WIDENING, SwapTiming
 from slipest.units import G
 
 #: Estimation methods (``method=``).
@@ -443,12 +442,10 @@ class SlipEstimator:
         self._timing = SwapTiming(self.n_legs) if self.swap_checks else None
         self._timing_shift = 0.0  # angle taken off theta for the IMU's timing so far [rad]
         self._timing_corrections = 0
-        self._shift_pending = None  # a new correction decided on the cycle being estimated [rad]
         self._timing_job = None  # the last estimated cycle's samples for the swap checks, not yet looked at
         self._retimed_through = -(2**62)  # cycles up to this one were emitted before the last re-timing
         self._n_retime_dropped = 0  # cycles cut again after a re-timing, already emitted: not emitted twice
         self._n_sluggish = 0  # cycles estimated while the IMU settled slowly after the swaps (widened)
-        self._retimed_at = -1  # index, in the cycles _emit was given, of the one that re-timed theta
         #: The feature row (:data:`slipest.features.FEATURE_NAMES`) of the last cycle that reached the estimator.
         self.last_features = None
 
@@ -457,8 +454,8 @@ class SlipEstimator:
         """What looks wrong with the input, once per kind: a sentence for people naming the likely mistake
         (``"units"``, ``"degrees"``, ``"timing"``: the IMU and the encoder disagree on the leg swaps and the
         angle was corrected), saying how the IMU differs from the model's (``"imu"``: it does not settle
-        after the leg swaps, see the module docstring; one of :data:`MODEL_HINTS`), or saying that the data do not fit the model (``"fit"``, from
-        :func:`fit_advice` as soon as it holds)."""
+        after the leg swaps, see the module docstring; one of :data:`MODEL_HINTS`), or saying that the data
+        do not fit the model (``"fit"``, from :func:`fit_advice` as soon as it holds)."""
         return dict(self._hints)
 
     @property
@@ -488,10 +485,10 @@ class SlipEstimator:
         ``spikes`` (isolated outliers found), ``noise_g`` (the running noise estimate [g]),
         ``timing_corrections`` and ``timing_shift_rad`` (how often the angle was corrected for the IMU's
         timing, and the correction in force [rad], see the module docstring), ``cycles_retimed`` (the rest
-        of an estimated cycle cut again on the corrected angle: not emitted twice), ``swaps_measured`` (leg swaps whose
-        IMU step was found, of ``swaps_looked`` at), ``cycles_sluggish_imu`` (cycles that reached the estimator while
-        the IMU settled slowly after the swaps, their likelihood widened), and the segmenter's counters prefixed
-        ``segmenter_``."""
+        of an estimated cycle cut again on the corrected angle: not emitted twice), ``swaps_measured`` (leg
+        swaps whose IMU step was found, of ``swaps_looked`` at), ``cycles_sluggish_imu`` (cycles that
+        reached the estimator while the IMU settled slowly after the swaps, their likelihood widened), and
+        the segmenter's counters prefixed ``segmenter_``."""
         c = {
             "samples": self._n_samples,
             "cycles": self._n_estimates,
@@ -577,7 +574,7 @@ class SlipEstimator:
         use = self.use_reference and math.isfinite(ref)
         widen = 1.0
         if self._timing is not None and self._timing.sluggish and not self._imu_described:
-            widen = swap_timing.SLUGGISH_WIDENING
+            widen = SLUGGISH_WIDENING
             self._n_sluggish += 1
             self._hints.setdefault("imu", (
                 "after each leg swap the IMU does not settle at the new leg's rigid level as the model's does "
@@ -612,16 +609,16 @@ class SlipEstimator:
             if advice:
                 self._hints["fit"] = advice
 
-    def _emit(self, cycles, refs, defer: bool = False) -> list:
-        """The estimates of ``cycles``, in order. After each, the swap checks look at the cycle (now, or with
-        ``defer`` when the next sample comes, :meth:`push`: off the closing sample's latency); when they re-time
-        theta, stops there (the later cycles were cut on the old angle: the caller pushes their samples again,
-        see :meth:`push_many`; ``_retimed_at``: the index of the cycle that re-timed)."""
+    def _emit(self, cycles, refs, defer: bool = False) -> tuple[list, int | None]:
+        """The estimates of ``cycles``, in order, and the index of the cycle after which theta was re-timed
+        (None: not). After each estimate the swap checks look at its cycle (now, or with ``defer`` when the
+        next sample comes, :meth:`push`: off the closing sample's latency); when they re-time theta, stops
+        there (the later cycles were cut on the old angle: the caller pushes their samples again, see
+        :meth:`push_many`)."""
         out = []
         for i, (cyc, ref) in enumerate(zip(cycles, refs)):
             if self._run_timing_job():  # a deferred look at the previous cycle re-timed theta before this one
-                self._retimed_at = i - 1
-                break
+                return out, i - 1
             if cyc.k <= self._retimed_through:  # the rest of a cycle already estimated, seen again re-timed
                 self._n_retime_dropped += 1
                 self._retimed_through = -(2**62)  # only the first cycle after a re-timing (a restart may go back)
@@ -635,9 +632,8 @@ class SlipEstimator:
                 self.on_estimate(e)
             out.append(e)
             if not defer and self._run_timing_job():
-                self._retimed_at = i
-                break
-        return out
+                return out, i
+        return out, None
 
     def _run_timing_job(self) -> bool:
         """The swap checks on the last estimated cycle, if not done yet; True when they re-timed theta (from
@@ -648,14 +644,12 @@ class SlipEstimator:
         shift = self._timing.add_cycle(*job)
         if shift is None:
             return False
-        self._shift_pending = shift
-        self._retime(job[0])
+        self._retime(job[0], shift)
         return True
 
-    def _retime(self, cycle: int) -> None:
-        """Take the new timing correction off theta from the next sample on (the caller re-synchronises the
-        segmenter after the closing sample of ``cycle``: the open cycle is dropped)."""
-        shift, self._shift_pending = self._shift_pending, None
+    def _retime(self, cycle: int, shift: float) -> None:
+        """Take the timing correction ``shift`` [rad, in all] off theta from the next sample on (the caller
+        re-synchronises the segmenter after the closing sample of ``cycle``: the open cycle is dropped)."""
         self._theta_offset += shift - self._timing_shift
         self._timing_shift = shift
         self._timing_corrections += 1
@@ -680,9 +674,8 @@ class SlipEstimator:
         cycles = self.segmenter.push(t, az, theta - self._theta_offset)
         out = []
         if cycles:
-            n_before = self._timing_corrections
-            out = self._emit(cycles, [self._ref.take()] + [math.nan] * (len(cycles) - 1), defer=True)
-            if self._timing_corrections != n_before:  # re-timed (two cycles closed at once): as above
+            out, retimed = self._emit(cycles, [self._ref.take()] + [math.nan] * (len(cycles) - 1), defer=True)
+            if retimed is not None:  # re-timed (two cycles closed at once): as above
                 self.segmenter.resync()
             last = cycles[-1]
             self._prefetch_at = last.t_end + PREFETCH_LEAD * (last.t_end - last.t_start)
@@ -746,10 +739,9 @@ class SlipEstimator:
                 refs.append(self._ref.take())
                 start = end
             self._ref.add_many(slip_ref[start:])
-        n_before = self._timing_corrections
-        out = self._emit(cycles, refs)
-        if self._timing_corrections != n_before:  # re-timed on cycles[self._retimed_at]
-            j = max(ends[:self._retimed_at + 1])
+        out, retimed = self._emit(cycles, refs)
+        if retimed is not None:  # re-timed after cycles[retimed]
+            j = max(ends[:retimed + 1])
             # the segmenter as it was after the closing sample (the cycles it closes again are the ones emitted)
             self.segmenter.restore(snap)
             self.segmenter.push_many(t[:j + 1], np.asarray(az)[:j + 1], np.asarray(shifted)[:j + 1])
@@ -768,7 +760,7 @@ class SlipEstimator:
         pushed afterwards start a new stream; the soil filter keeps what it learnt."""
         cycles = self.segmenter.finish()
         ref = self._ref.take()
-        out = self._emit(cycles, [ref] * len(cycles))
+        out, _ = self._emit(cycles, [ref] * len(cycles))
         self._run_timing_job()  # (the next sample starts a new stream anyway)
         return out
 

@@ -669,10 +669,7 @@ class CycleSegmenter:
     def restore(self, snap: tuple) -> None:
         """Go back to the state of a :meth:`snapshot` (the samples pushed since are forgotten)."""
         st, counts, window = snap
-        n = window.shape[1]
-        if self._buf.shape[1] < n:
-            self._buf = np.empty((3, n))
-        self._buf[:, :n] = window
+        self._buf[:, :window.shape[1]] = window  # (the buffer only grows: the window fits)
         self._st = st.copy()
         self._c_cycles = dict(counts)
 
