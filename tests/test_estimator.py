@@ -218,6 +218,40 @@ def test_estimator_batch_equals_sequential(change_stream):
         SoilSlipEstimator().update(feats[2])
 
 
+def test_the_sharpened_soil_moves_the_estimates_and_never_narrows_the_intervals(change_stream):
+    """soil_sharpen weighs the soil cells by the posterior squared (default 2) for the slip and soil reported: from
+    the same posterior, the means move and every standard deviation is at least the unsharpened one's."""
+    s = change_stream
+    n = 10 * 2493
+    feats = [cycle_features(c.theta_phase, c.az, c.t) for c in CycleSegmenter(4).push_many(s.t[:n], s.az[:n], s.theta[:n])]
+    plain, sharp = SoilSlipEstimator(soil_sharpen=1.0), SoilSlipEstimator()
+    assert sharp.soil_sharpen == 2.0
+    moved = 0
+    for f in feats:
+        sharp._w[:] = plain._w  # the same posterior and slip history before each cycle
+        sharp._moments[:] = plain._moments
+        a, b = plain.update(f), sharp.update(f)
+        assert b.slip_std >= a.slip_std * (1 - 1e-9) and abs(b.slip - a.slip) <= b.slip_std
+        moved += abs(b.slip - a.slip) > 1e-4
+        # the soil reported, against the unsharpened moments of the posterior it was reported from
+        w, x, q = sharp._w, sharp._summary_x, sharp._summary_q
+        for i, name in enumerate(("dphi", "kS", "phiS", "phiD")):
+            m = w @ x[i]
+            sd = math.sqrt(w @ (x[i] - m) ** 2 + q[i])
+            assert getattr(b, name + "_std") >= sd * (1 - 1e-9) and abs(getattr(b, name) - m) <= sd * (1 + 1e-9)
+    assert moved >= 3
+    # the default's product (w * w) and the general power (w ** sharpen) agree
+    power = SoilSlipEstimator(soil_sharpen=float(np.nextafter(2.0, 3.0)))
+    product = SoilSlipEstimator()
+    for f in feats:
+        a, b = product.update(f), power.update(f)
+        for name in ("slip", "slip_std", "dphi", "dphi_std", "kS", "kS_std", "phiS_std"):
+            assert getattr(b, name) == pytest.approx(getattr(a, name), rel=1e-9, abs=1e-12)
+    for bad in (0.5, 11.0, float("nan")):
+        with pytest.raises(ValueError, match="soil_sharpen"):
+            SoilSlipEstimator(soil_sharpen=bad)
+
+
 def test_compiled_whitening_gives_the_mahalanobis_distance(change_stream):
     """The compiled whitening of a feature row, against a table column, gives the squared Mahalanobis distance
     ``(f - mu)^T R^-1 (f - mu)`` of the surrogate at that cell and slip node, at the table's leg speed and noise;
