@@ -9,14 +9,17 @@ Three parts, each on simulated logs (one soil, slip redrawn every 3 cycles,
   checks on and off: slip RMSE, 95 % coverage, re-timings, the correction in
   force, cycles widened for a sluggish IMU, the settling ratio;
 * ``skew``: clean logs with ``theta`` re-timed by a skew, the checks off:
-  how much timing error the estimator tolerates (``swap_timing.TOLERANCE``);
+  how much timing error the estimator tolerates (``swap_timing.TOLERANCE``),
+  on the one log and on ``bench_accuracy``'s draws (4 soils x 25 cycles,
+  default 8 runs);
 * ``clean``: ``bench_accuracy``'s draws (4 soils x 25 cycles, leg speed
   steady or changing) rotated over 1 kHz, 250 Hz, 200 Hz, 2 kHz, 0.025 g
   and no noise, plus runs at a constant slip of 0.4-0.5 (the foot re-plants
   there): runs re-timed or widened, which should be none.
 
-Development seeds only (default 9 for the variants and the skews, 3 for the
-clean runs); progress on stderr. About 3 minutes for the default sizes.
+Development seeds only (default 9 for the variants and the one skewed log, 3
+for the envelope skews and the clean runs); progress on stderr. About 5
+minutes for the default sizes.
 
     python tools/check_swap_checks.py
     python tools/check_swap_checks.py --parts clean --seed 5 --clean-runs 24
@@ -93,13 +96,37 @@ def variants(seed: int) -> None:
               f"{on['sluggish']:7d} {on['settling']:+8.3f} | {off['rmse']:13.3f} {off['coverage']:7.0%}")
 
 
-def skews(seed: int) -> None:
+def skews(seed: int, envelope_seed: int, runs: int) -> None:
     print(f"\nclean log re-timed by a skew, checks off (seed {seed}): the timing error the estimator tolerates")
     run, slips = log(seed=seed)
     for tau in tqdm(SKEWS, desc="skews", file=sys.stderr):
         theta = np.interp(run.t - tau, run.t, run.theta)  # the encoder's reading tau late (tau < 0: early)
         r = score(run.t, run.az, theta, slips, swap_checks=False)
         print(f"  skew {1e3 * tau:+5.0f} ms: slip RMSE {r['rmse']:.3f}, bias {r['bias']:+.3f}, coverage {r['coverage']:.0%}")
+    print(f"\n{runs} envelope runs (bench_accuracy's draws, 1 kHz, 0.01 g, seed {envelope_seed}) re-timed by a skew, "
+          "checks off; scored from the 10th cycle on a soil")
+    rng = np.random.default_rng(envelope_seed)
+    sims = []
+    for r in range(runs):
+        d = acc.draw_run(rng, 4, 25, changing=bool(r % 2))
+        sc = Scenario.per_cycle(StickSlipParams(), dict(noise_g=0.01, rate=1000.0, seed=d["seed"]),
+                                **{k: d[k] for k in ("slip", "kS", "phiS", "phiD", "omega")})
+        ks = np.asarray(d["kS"])
+        start = np.r_[0, np.flatnonzero(np.diff(ks)) + 1]  # the soils' first cycles
+        age = np.arange(ks.size) - start[np.searchsorted(start, np.arange(ks.size), side="right") - 1]
+        sims.append((simulate_stream(sc), np.asarray(d["slip"]), age))
+    for tau in tqdm(SKEWS, desc="envelope skews", file=sys.stderr):
+        err, std = [], []
+        for s, slips_, age in sims:
+            est = SlipEstimator(n_legs=4, swap_checks=False)
+            rows = est.push_many(s.t, s.az, np.interp(s.t - tau, s.t, s.theta)) + est.finish()
+            for e in rows:
+                if e.ok and e.cycle < slips_.size and age[e.cycle] >= 10:
+                    err.append(e.slip - slips_[e.cycle])
+                    std.append(e.slip_std)
+        err, std = np.asarray(err), np.asarray(std)
+        print(f"  skew {1e3 * tau:+5.0f} ms: slip RMSE {np.sqrt(np.mean(err**2)):.4f}, bias {err.mean():+.4f}, "
+              f"coverage {np.mean(np.abs(err) <= 1.96 * std):.1%} ({err.size} cycles)")
 
 
 def clean(seed: int, runs: int, high_slip: int) -> None:
@@ -144,6 +171,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=None, help="seed (default 9 for variants and skew, 3 for clean)")
     ap.add_argument("--clean-runs", type=int, default=12, help="envelope runs of the clean part")
     ap.add_argument("--high-slip-runs", type=int, default=12, help="constant high-slip runs of the clean part")
+    ap.add_argument("--envelope-runs", type=int, default=8, help="envelope runs of the skew part")
     args = ap.parse_args(argv)
     parts = {p.strip() for p in args.parts.split(",")}
     unknown = parts - {"variants", "skew", "clean"}
@@ -152,7 +180,7 @@ def main(argv=None) -> int:
     if "variants" in parts:
         variants(9 if args.seed is None else args.seed)
     if "skew" in parts:
-        skews(9 if args.seed is None else args.seed)
+        skews(9 if args.seed is None else args.seed, 3 if args.seed is None else args.seed, args.envelope_runs)
     if "clean" in parts:
         clean(3 if args.seed is None else args.seed, args.clean_runs, args.high_slip_runs)
     return 0
