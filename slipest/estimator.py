@@ -12,8 +12,10 @@ slip nodes; the measurement model is the feature surrogate
 1. predict: with probability ``hazard`` the soil changed (mixed with the
    prior); ``change_prob`` is the posterior probability that it did;
 2. slip: posterior over slip nodes 0.02 apart, marginalised over the cells
-   that hold the mass, weighted by the soil posterior raised to
-   ``soil_sharpen``; likelihood ``N(f; mu(slip, soil), R / slip_temper)``;
+   that hold the mass; likelihood ``N(f; mu(slip, soil), R / slip_temper)``;
+   its mean (and the soil's reported) taken under the soil posterior raised
+   to ``soil_sharpen`` once the recent slips have varied, its spread not
+   narrowed;
 3. soil update: the weights raised to ``forget``, times the cycle's soil
    likelihood (slip marginalised, or at the reference slip when one is given
    and ``use_reference`` is on) raised to ``soil_temper``, or, without a
@@ -142,8 +144,8 @@ def slip_spread_weight(moments, slip, repeat_temper):
 
 @numba.njit(cache=True, fastmath=True)
 def _cycle_step(w, prior, hazard, soil_temper, repeat_temper, moments, forget, cutoff, sharpen, node_width, scale,
-                fit_level, floor, gross, table, fw, lp, nodes, node_quant, ref_k, ref_a, skip, summary_x, summary_q, dmat,
-                f32s, f64s, sel, ps, out):
+                fit_level, floor, gross, table, fw, lp, nodes, node_quant, ref_k, ref_a, skip, summary_x, summary_q,
+                dmat, f32s, f64s, sel, ps, out):
     """One cycle of the grid filter, in place on the weights ``w`` (the soil posterior over the cells).
 
     predict (hazard mixing with the prior), cell likelihoods on the slip
@@ -172,8 +174,9 @@ def _cycle_step(w, prior, hazard, soil_temper, repeat_temper, moments, forget, c
     distance [-], then mean and std of each row of
     ``summary_x`` under the updated weights (the means under the weights
     sharpened as for slip; std with ``summary_q`` added to the variance and
-    widened by how far the mean moved). Scratch: ``dmat`` ``(K, S)`` and ``f32s`` ``(3, S)`` float32,
-    ``f64s`` ``(2, S)`` float64, ``sel`` ``(S,)`` int64, ``ps`` ``(K,)`` float64.
+    widened by how far the mean moved). Scratch: ``dmat`` ``(K, S)`` and
+    ``f32s`` ``(3, S)`` float32, ``f64s`` ``(2, S)`` float64, ``sel``
+    ``(S,)`` int64, ``ps`` ``(K,)`` float64.
     """
     S = w.size
     lc = f64s[0]  # cell log-likelihoods, then the update's
@@ -207,10 +210,15 @@ def _cycle_step(w, prior, hazard, soil_temper, repeat_temper, moments, forget, c
             v = sharpen * lw[sel[i]] + lc[sel[i]]
             if v > top:
                 top = v
+        kept = 0  # the selected cells that still matter once sharpened (fewer: the mass gathers)
         for i in range(n):
-            base[i] = np.float32(sharpen * lw[sel[i]] - top)
+            c = sel[i]
+            if sharpen * lw[c] + lc[c] >= top - cutoff:
+                sel[kept] = c
+                base[kept] = np.float32(sharpen * lw[c] - top)
+                kept += 1
         ps[:] = 0.0
-        marginal_from_rows(dmat, sel, base, n, ps)
+        marginal_from_rows(dmat, sel, base, kept, ps)
         m, sd = node_moments(ps, nodes, node_quant)
         out[1] = math.sqrt(out[1] * out[1] + (out[0] - m) ** 2)
         out[0] = m

@@ -223,7 +223,8 @@ def test_the_sharpened_soil_moves_the_estimates_and_never_narrows_the_intervals(
     the same posterior, the means move and every standard deviation is at least the unsharpened one's."""
     s = change_stream
     n = 10 * 2493
-    feats = [cycle_features(c.theta_phase, c.az, c.t) for c in CycleSegmenter(4).push_many(s.t[:n], s.az[:n], s.theta[:n])]
+    cycles = CycleSegmenter(4).push_many(s.t[:n], s.az[:n], s.theta[:n])
+    feats = [cycle_features(c.theta_phase, c.az, c.t) for c in cycles]
     plain, sharp = SoilSlipEstimator(soil_sharpen=1.0), SoilSlipEstimator()
     assert sharp.soil_sharpen == 2.0
     moved = 0
