@@ -163,11 +163,13 @@ def test_ros2_bags_estimate_as_the_same_samples_in_a_csv(storage, drive, tmp_pat
     assert len(ok) >= 5
     for k in ok:  # the joint angle at 200 Hz, unwrapped and interpolated onto the IMU's 1 kHz stamps
         assert from_bag[k]["quality"] == "ok"
-        assert float(from_bag[k]["slip"]) == pytest.approx(float(from_csv[k]["slip"]), abs=1e-5)
-        assert float(from_bag[k]["slip_ref"]) == pytest.approx(float(from_csv[k]["slip_ref"]), abs=1e-9)
         # the last cycle ends at the last sample: the bag's IMU samples after the last 200 Hz joint stamp
-        # cannot be given an angle, so its stream ends up to 5 ms earlier
+        # cannot be given an angle, so its stream ends up to 5 ms earlier, and that cycle lacks up to 5 of its
+        # 2493 samples (its slip moved by 5e-6, 1.1e-5 since the estimate is sharpened: under 2e-4 of its std)
         last = k == max(from_csv)
+        assert float(from_bag[k]["slip"]) == pytest.approx(float(from_csv[k]["slip"]),
+                                                           abs=1e-3 * float(from_csv[k]["slip_std"]) if last else 1e-5)
+        assert float(from_bag[k]["slip_ref"]) == pytest.approx(float(from_csv[k]["slip_ref"]), abs=1e-9)
         assert float(from_bag[k]["t_end"]) == pytest.approx(1.7e9 + float(from_csv[k]["t_end"]),
                                                             abs=5e-3 if last else 1e-5)
     assert "ROS 2 bag:" in err and "of 'wheel_leg'" in err and "truth: slip RMSE" in err
