@@ -20,11 +20,24 @@ import time
 PY = sys.executable
 
 
-class Proc:
-    """A subprocess with its output lines collected (``lines``, ``err_lines``)."""
+#: What a firmware-sim device prints once it streams, and how long it may take to get there [s]: it simulates its
+#: whole run first, and on a cold numba cache (a fresh install, CI) compiles the simulator's kernels, which took
+#: more than 60 s on a loaded 2-core machine (slipest demo waits as long: ``slipest/cli/demo.py``).
+DEVICE_READY = "firmware-sim: streaming"
+DEVICE_READY_TIMEOUT = 300.0
 
-    def __init__(self, args: list[str], **kwargs):
+
+class Proc:
+    """A subprocess with its output lines collected (``lines``, ``err_lines``).
+
+    ``ready``: a stdout text the process prints once its work starts (None: from the start); :meth:`wait`
+    counts its timeout from then, after up to ``ready_timeout`` [s] of preparation."""
+
+    def __init__(self, args: list[str], ready: str | None = None, ready_timeout: float = DEVICE_READY_TIMEOUT,
+                 **kwargs):
         self.args = args
+        self.ready = ready
+        self.ready_timeout = ready_timeout
         self.p = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1, **kwargs)
         self.lines: list[str] = []
         self.err_lines: list[str] = []
@@ -74,6 +87,12 @@ class Proc:
             time.sleep(0.02)
 
     def wait(self, timeout: float = 60.0) -> int:
+        """The exit status, within ``timeout`` [s] of the ``ready`` text (see the class docstring)."""
+        if self.ready is not None:
+            deadline = time.monotonic() + self.ready_timeout
+            while (self.p.poll() is None and time.monotonic() < deadline
+                   and not any(self.ready in line for line in list(self.lines))):
+                time.sleep(0.02)
         rc = self.p.wait(timeout)
         for t in self._threads:
             t.join(timeout=5)
@@ -141,7 +160,8 @@ class Stopping(list):
 
 
 def firmware_sim(*args: str) -> Proc:
-    return Proc([PY, "-m", "firmware_sim", *args])
+    """``python -m firmware_sim ARGS``; :meth:`Proc.wait` gives it its timeout from when it streams."""
+    return Proc([PY, "-m", "firmware_sim", *args], ready=DEVICE_READY)
 
 
 def slipest_cmd(*args: str) -> Proc:
