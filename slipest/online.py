@@ -85,6 +85,7 @@ import numba
 import numpy as np
 
 from slipest.cycle_estimator import CycleEstimate
+from slipest.dequantize import AngleDequantizer
 from slipest.despike import outliers
 from slipest.features import INDEX, cycle_features, sample_noise
 from slipest.inverse.base import Soil
@@ -96,8 +97,9 @@ from slipest.units import G
 METHODS = ("default", "eq515")
 #: Qualities of an estimated cycle.
 ESTIMATED = ("ok", "repaired")
-#: Hints that say the data differ from the model, not that the input is wrong ("fit" aside).
-MODEL_HINTS = ("imu",)
+#: Hints that say the data differ from the model, or how they were taken, not that the input is wrong ("fit"
+#: aside).
+MODEL_HINTS = ("imu", "encoder")
 #: Cycles whose noise measures make the running noise estimate (their median) [-].
 NOISE_CYCLES = 9
 _DELTA_A, _NOISE, _NOISE_SMOOTH = INDEX["delta_a"], INDEX["noise"], INDEX["noise_smooth"]
@@ -367,6 +369,7 @@ class SlipEstimator:
         calibration: dict | None = None,
         noise: float | None = None,
         swap_checks: bool = True,
+        dequantize: bool = True,
     ):
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, not {method!r}")
@@ -392,6 +395,7 @@ class SlipEstimator:
             raise ValueError(f"noise={noise} g must be a finite number >= 0")
         self.noise = noise
         self.swap_checks = bool(swap_checks)
+        self.dequantize = bool(dequantize)
         self.segmenter = CycleSegmenter(self.n_legs, **self._seg_opts)
         self._make_filter()
         self._reset_counts()
@@ -440,6 +444,7 @@ class SlipEstimator:
         self._noise_smooth = math.nan  # the last estimated cycle's smoothed noise [g]
         self._hints: dict[str, str] = {}
         self._timing = SwapTiming(self.n_legs) if self.swap_checks else None
+        self._dequant = AngleDequantizer() if self.dequantize else None
         self._timing_shift = 0.0  # angle taken off theta for the IMU's timing so far [rad]
         self._timing_corrections = 0
         self._timing_job = None  # the last estimated cycle's samples for the swap checks, not yet looked at
@@ -453,9 +458,11 @@ class SlipEstimator:
     def hints(self) -> dict:
         """What looks wrong with the input, once per kind: a sentence for people naming the likely mistake
         (``"units"``, ``"degrees"``, ``"timing"``: the IMU and the encoder disagree on the leg swaps and the
-        angle was corrected), saying how the IMU differs from the model's (``"imu"``: it does not settle
-        after the leg swaps, see the module docstring; one of :data:`MODEL_HINTS`), or saying that the data
-        do not fit the model (``"fit"``, from :func:`fit_advice` as soon as it holds)."""
+        angle was corrected), saying how the IMU or the encoder differs from the model's (``"imu"``: it does
+        not settle after the leg swaps, see the module docstring; ``"encoder"``: it reports whole counts, and
+        the angle is interpolated between them, :mod:`slipest.dequantize`; the kinds of :data:`MODEL_HINTS`),
+        or saying that the data do not fit the model (``"fit"``, from :func:`fit_advice` as soon as it
+        holds)."""
         return dict(self._hints)
 
     @property
@@ -487,8 +494,9 @@ class SlipEstimator:
         timing, and the correction in force [rad], see the module docstring), ``cycles_retimed`` (the rest
         of an estimated cycle cut again on the corrected angle: not emitted twice), ``swaps_measured`` (leg
         swaps whose IMU step was found, of ``swaps_looked`` at), ``cycles_sluggish_imu`` (cycles that
-        reached the estimator while the IMU settled slowly after the swaps, their likelihood widened), and
-        the segmenter's counters prefixed ``segmenter_``."""
+        reached the estimator while the IMU settled slowly after the swaps, their likelihood widened),
+        ``samples_interpolated`` (samples of a whole-count encoder whose angle was interpolated between its
+        count changes, :mod:`slipest.dequantize`), and the segmenter's counters prefixed ``segmenter_``."""
         c = {
             "samples": self._n_samples,
             "cycles": self._n_estimates,
@@ -507,6 +515,7 @@ class SlipEstimator:
             "swaps_measured": self._timing.measured if self._timing is not None else 0,
             "swaps_looked": self._timing.looked if self._timing is not None else 0,
             "cycles_sluggish_imu": self._n_sluggish,
+            "samples_interpolated": self._dequant.interpolated if self._dequant is not None else 0,
         }
         for k, v in sorted(self._n_flagged.items()):
             c[f"flagged_{k}"] = v
@@ -669,6 +678,11 @@ class SlipEstimator:
         Returns the estimates of the cycles it closed (usually none, at most one or two).
         """
         self._n_samples += 1
+        if self._dequant is not None:  # a whole-count encoder: its samples come out a count later
+            held = self._dequant.push(t, az, theta, math.nan if slip_ref is None else slip_ref)
+            if held is not None:
+                self._encoder_hint()
+                return self._push_chunk(*held) if held[0].size else []
         if self._timing_job is not None and self._run_timing_job():  # re-timed: this sample starts the stream again
             self.segmenter.resync()
         cycles = self.segmenter.push(t, az, theta - self._theta_offset)
@@ -700,7 +714,21 @@ class SlipEstimator:
             slip_ref = np.asarray(slip_ref, dtype=float)
             if slip_ref.shape != t.shape:
                 raise ValueError(f"slip_ref must have the shape of t {t.shape}, got {slip_ref.shape}")
+        if self._dequant is not None:  # a whole-count encoder: its samples come out a count later
+            t, az, theta, slip_ref = self._dequant.feed(t, az, theta, slip_ref)
+            if self._dequant.active:
+                self._encoder_hint()
+            if t.size == 0:
+                return []
         return self._push_chunk(t, az, theta, slip_ref)
+
+    def _encoder_hint(self) -> None:
+        """Say once that the encoder counts whole steps and its angle is interpolated."""
+        if "encoder" not in self._hints:
+            step = self._dequant.step
+            self._hints["encoder"] = (f"the encoder reports whole counts of {step:.4g} rad (about "
+                                      f"{2 * math.pi / step:.0f} a revolution): the leg angle is interpolated "
+                                      "between its count changes, and each estimate comes up to one count later")
 
     def _push_chunk(self, t, az, theta, slip_ref) -> list:
         """:meth:`push_many` after the checks; when a cycle re-times theta, the samples after its closing
@@ -758,9 +786,15 @@ class SlipEstimator:
         """Say the stream ended: the estimate of its last cycle, which no sample will close (``"partial"`` when
         the stream stopped inside its window; see :meth:`slipest.segmentation.CycleSegmenter.finish`). Samples
         pushed afterwards start a new stream; the soil filter keeps what it learnt."""
+        out = []
+        if self._dequant is not None:  # the last count's samples, held for a change that will not come
+            held = self._dequant.flush()
+            if held is not None and held[0].size:
+                out = self._push_chunk(*held)
         cycles = self.segmenter.finish()
         ref = self._ref.take()
-        out, _ = self._emit(cycles, [ref] * len(cycles))
+        last, _ = self._emit(cycles, [ref] * len(cycles))
+        out += last
         self._run_timing_job()  # (the next sample starts a new stream anyway)
         return out
 
