@@ -682,7 +682,13 @@ class SlipEstimator:
             held = self._dequant.push(t, az, theta, math.nan if slip_ref is None else slip_ref)
             if held is not None:
                 self._encoder_hint()
-                return self._push_chunk(*held) if held[0].size else []
+                out = self._push_chunk(*held) if held[0].size else []
+                if out:
+                    last = out[-1]
+                    self._prefetch_at = last.t_end + PREFETCH_LEAD * (last.t_end - last.t_start)
+                elif held[0].size:
+                    self._warm_for_next_close(float(held[0][-1]))
+                return out
         if self._timing_job is not None and self._run_timing_job():  # re-timed: this sample starts the stream again
             self.segmenter.resync()
         cycles = self.segmenter.push(t, az, theta - self._theta_offset)
@@ -693,13 +699,19 @@ class SlipEstimator:
                 self.segmenter.resync()
             last = cycles[-1]
             self._prefetch_at = last.t_end + PREFETCH_LEAD * (last.t_end - last.t_start)
-        elif t >= self._prefetch_at:  # the next close is near: get the estimator's table ready, warm it
-            self._prefetch_at = math.inf
-            wt, wph = self.segmenter.open_window()
-            self.filter.prefetch(_window_speed(wt, wph, math.pi / self.n_legs), self._noise_smooth)
+        else:
+            self._warm_for_next_close(t)
         if slip_ref is not None:
             self._ref.add(float(slip_ref))
         return out
+
+    def _warm_for_next_close(self, t: float) -> None:
+        """Once the next cycle's close is near (sample time ``t`` [s]), get the estimator's table ready and warm
+        (off the closing sample's latency)."""
+        if t >= self._prefetch_at:
+            self._prefetch_at = math.inf
+            wt, wph = self.segmenter.open_window()
+            self.filter.prefetch(_window_speed(wt, wph, math.pi / self.n_legs), self._noise_smooth)
 
     def push_many(self, t, az, theta, slip_ref=None) -> list:
         """Add arrays of samples (and optionally one reference slip per sample, NaN: none).
