@@ -177,11 +177,13 @@ class AngleDequantizer:
     """
 
     def __init__(self):
+        self._done = 0  # samples interpolated in the streams before this one
+        self._state = np.zeros(_N_STATE)
         self.reset()
 
     def reset(self) -> None:
         """Forget the stream (detection included; :attr:`interpolated` kept)."""
-        self._done = self.interpolated if hasattr(self, "_state") else 0
+        self._done = self.interpolated
         self._state = np.zeros(_N_STATE)
         self._ring = np.zeros(RUNS)
         self._held: tuple | None = None  # (t, az, theta, ref) arrays of the held samples

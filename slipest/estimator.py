@@ -219,7 +219,7 @@ def _cycle_step(w, prior, hazard, soil_temper, repeat_temper, moments, forget, c
                 kept += 1
         ps[:] = 0.0
         marginal_from_rows(dmat, sel, base, kept, ps)
-        m, sd = node_moments(ps, nodes, node_quant)
+        m, _ = node_moments(ps, nodes, node_quant)
         out[1] = math.sqrt(out[1] * out[1] + (out[0] - m) ** 2)
         out[0] = m
     out[2] = change
