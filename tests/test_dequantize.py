@@ -11,10 +11,8 @@ import pytest
 from slipest.cli.main import main
 from slipest.dequantize import MAX_HOLD, AngleDequantizer
 from slipest.io.log_csv import LogWriter
-from slipest.model.params import StickSlipParams
-from slipest.model.scenario import Scenario
-from slipest.model.stream import simulate_stream
 from slipest.online import SlipEstimator
+from tests.log_makers import stream
 
 RATE = 1000.0
 
@@ -115,21 +113,16 @@ def test_a_leg_standing_still_is_not_held_longer_than_max_hold():
     assert longest <= MAX_HOLD * RATE + 2
 
 
-def _drive(soil, counts=None, dequantize=True):
-    rng = np.random.default_rng(5)
-    slips = np.repeat(rng.uniform(0.05, 0.45, 10), 3)
-    sc = Scenario.per_cycle(StickSlipParams(**soil), slip=slips)
-    run = simulate_stream(Scenario(cycles=sc.cycles, rate=RATE, noise_g=0.01, seed=5))
-    theta = run.theta if counts is None else _counts(run.theta, counts)
-    return run, theta, slips
-
-
-SOIL = {"kS": 1100.0, "phiS": 0.6, "phiD": 0.35}
+#: The soil's dphi [rad] of tests.log_makers.stream's drives (phiS 0.5, phiD 0.3).
+DPHI = 0.2
 
 
 @pytest.fixture(scope="module")
 def drive():
-    return _drive(SOIL)
+    """A 30-cycle drive at 1 kHz, 0.01 g, slip redrawn every 3 cycles: the stream, its exact angle, the slips."""
+    slips = np.repeat(np.random.default_rng(5).uniform(0.05, 0.45, 10), 3)
+    run, _ = stream(slip=slips)
+    return run, run.theta, slips
 
 
 def _estimates(run, theta, one_by_one=False, **kw):
@@ -149,16 +142,15 @@ def test_the_estimator_on_a_coarse_encoder_gives_what_it_gives_on_a_fine_one_and
     _, raw = _estimates(run, coarse, dequantize=False)
     cyc = [c for c in range(10, slips.size) if c in fine and c in deq and c in raw]
     assert len(cyc) >= 18
-    dphi = SOIL["phiS"] - SOIL["phiD"]
 
     def rms(rows, key, truth):
         return math.sqrt(np.mean([(getattr(rows[c], key) - truth[c]) ** 2 for c in cyc]))
 
     fine_slip = {c: fine[c].slip for c in cyc}
-    assert rms(deq, "slip", fine_slip) < 0.003  # measured 0.0006
-    assert rms(raw, "slip", fine_slip) > 0.01  # measured 0.029: what the staircase cost before
-    assert rms(deq, "dphi", {c: dphi for c in cyc}) < 0.015  # measured 0.005
-    assert rms(raw, "dphi", {c: dphi for c in cyc}) > 0.03  # measured 0.051
+    assert rms(deq, "slip", fine_slip) < 0.003  # measured 0.0002
+    assert rms(raw, "slip", fine_slip) > 0.01  # measured 0.047: what the staircase cost before
+    assert rms(deq, "dphi", {c: DPHI for c in cyc}) < 0.015  # measured 0.0085
+    assert rms(raw, "dphi", {c: DPHI for c in cyc}) > 0.03  # measured 0.047
     assert "encoder" in est.hints and "150" in est.hints["encoder"]
     assert est.counters["samples_interpolated"] > 0.9 * run.t.size
 
