@@ -85,12 +85,17 @@ def draw_run(rng, n_soils: int, per_soil: int, changing: bool) -> dict:
             "seed": int(rng.integers(2**31))}
 
 
+def scenario(run: dict, rate: float, noise: float) -> Scenario:
+    """The simulator scenario of a drawn run (:func:`draw_run`) with an IMU at ``rate`` [Hz] and ``noise`` [g]."""
+    return Scenario.per_cycle(StickSlipParams(), dict(noise_g=noise, rate=rate, seed=run["seed"]),
+                              **{k: run[k] for k in ("slip", "kS", "phiS", "phiD", "omega")})
+
+
 def run_one(run: dict, rate: float, noise: float, inverse: FeatureInverse, model, inject=None) -> dict:
     """Estimates of one run (soil unknown) and the same cycles' soil-known inversions; ``inject(t, az, theta,
     cycle)``, when given, returns the stream with faults in it (``tools/bench_faults.py``)."""
     n = run["slip"].size
-    sc = Scenario.per_cycle(StickSlipParams(), dict(noise_g=noise, rate=rate, seed=run["seed"]),
-                            **{k: run[k] for k in ("slip", "kS", "phiS", "phiD", "omega")})
+    sc = scenario(run, rate, noise)
     rows = {k: np.full(n, np.nan) for k in ("slip", "slip_std", "dphi", "dphi_std", "slip_known", "slip_known_std")}
     quality = np.full(n, "missing", dtype=object)
     repaired = np.zeros(n, int)

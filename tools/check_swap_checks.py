@@ -109,19 +109,14 @@ def skews(seed: int, envelope_seed: int, runs: int) -> None:
     sims = []
     for r in range(runs):
         d = acc.draw_run(rng, 4, 25, changing=bool(r % 2))
-        sc = Scenario.per_cycle(StickSlipParams(), dict(noise_g=0.01, rate=1000.0, seed=d["seed"]),
-                                **{k: d[k] for k in ("slip", "kS", "phiS", "phiD", "omega")})
-        ks = np.asarray(d["kS"])
-        start = np.r_[0, np.flatnonzero(np.diff(ks)) + 1]  # the soils' first cycles
-        age = np.arange(ks.size) - start[np.searchsorted(start, np.arange(ks.size), side="right") - 1]
-        sims.append((simulate_stream(sc), np.asarray(d["slip"]), age))
+        sims.append((simulate_stream(acc.scenario(d, 1000.0, 0.01)), np.asarray(d["slip"]), d["since"]))
     for tau in tqdm(SKEWS, desc="envelope skews", file=sys.stderr):
         err, std = [], []
-        for s, slips_, age in sims:
+        for s, slips_, since in sims:
             est = SlipEstimator(n_legs=4, swap_checks=False)
             rows = est.push_many(s.t, s.az, np.interp(s.t - tau, s.t, s.theta)) + est.finish()
             for e in rows:
-                if e.ok and e.cycle < slips_.size and age[e.cycle] >= 10:
+                if e.ok and e.cycle < slips_.size and since[e.cycle] >= 10:  # as bench_accuracy scores
                     err.append(e.slip - slips_[e.cycle])
                     std.append(e.slip_std)
         err, std = np.asarray(err), np.asarray(std)
@@ -135,9 +130,7 @@ def clean(seed: int, runs: int, high_slip: int) -> None:
     flagged, settling = [], []
     for i, run in enumerate(tqdm(draws, desc="clean runs", file=sys.stderr)):
         rate, noise = CONDITIONS[i % len(CONDITIONS)]
-        sc = Scenario.per_cycle(StickSlipParams(), dict(noise_g=noise, rate=rate, seed=run["seed"]),
-                                **{k: run[k] for k in ("slip", "kS", "phiS", "phiD", "omega")})
-        s = simulate_stream(sc)
+        s = simulate_stream(acc.scenario(run, rate, noise))
         est = SlipEstimator(n_legs=4)
         est.push_many(s.t, s.az, s.theta)
         est.finish()
