@@ -66,7 +66,14 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.repeats < 2 or a.soils < 2:
         ap.error("--repeats and --soils must be at least 2")
+    if not 0.0 < a.slip_step <= 0.1:
+        ap.error(f"--slip-step {a.slip_step:g} must be in (0, 0.1]")
+    if not (a.rate > 0 and a.noise >= 0):
+        ap.error("--rate must be > 0 Hz and --noise >= 0 g")
     model = load_inverse_model()
+    lo, hi = model.covered_range("omega")
+    if not lo <= a.omega <= hi:
+        ap.error(f"--omega {a.omega:g} rad/s is outside the shipped model's covered speeds {lo:g}-{hi:g} rad/s")
     rng = np.random.default_rng(a.seed)
     soils = draw_envelope(a.soils, rng, DOMAIN, PHID_MIN)[:, 1:4]  # kS, phiS, dphi
     slips = np.arange(0.0, 0.5 + 1e-9, a.slip_step)
