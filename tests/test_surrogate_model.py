@@ -13,6 +13,7 @@ from slipest.inverse.surrogate import (
     load_inverse_model,
     node_terms,
     save_inverse_model,
+    whitener,
 )
 
 FEATS = ("rms", "onset", "osc_freq")
@@ -147,3 +148,14 @@ def test_shipped_model_is_the_current_format_and_covers_the_envelope():
     assert m.node_omegas[0] <= lo and hi <= m.node_omegas[-1] and lo <= 0.3 and hi >= 1.2
     assert m.coef.shape == (m.node_omegas.size, m.terms.shape[0], len(m.features))
     assert m.n_legs == 4 and np.isfinite(m.meta["fit_level"]) and m.meta["fit_level"] > 0
+
+
+def test_whitener_whitens_the_model_covariance():
+    """``whitener(R)``: ``W W^T = R^-1``, lower triangular, and residuals drawn with ``R`` come out with identity
+    covariance (the shipped model's ``R``, which the grid tables, the calibration and the tools whiten with)."""
+    r = load_inverse_model().cov(0.63, 0.002)
+    w = whitener(r)
+    np.testing.assert_allclose(w @ w.T, np.linalg.inv(r), rtol=1e-9, atol=1e-9 * np.abs(np.linalg.inv(r)).max())
+    np.testing.assert_array_equal(w, np.tril(w))
+    z = np.random.default_rng(0).multivariate_normal(np.zeros(len(r)), r, size=200_000) @ w
+    np.testing.assert_allclose(np.cov(z.T), np.eye(len(r)), atol=0.02)

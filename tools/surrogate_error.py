@@ -5,8 +5,9 @@ The estimator's likelihood treats each cycle's features as
 ``N(mu(slip, soil), R)`` (:mod:`slipest.inverse.surrogate`), independent from
 cycle to cycle, and tempers it because that is not quite true
 (docs/estimator.md, "Why tempering and forgetting"). This tool measures what
-is true. On ``--soils`` soils drawn over the covered domain (kS 500-1500
-N/m, phiS 0.1-0.8 rad, phiD 0.1 rad up to phiS), each at every slip on a
+is true. On ``--soils`` soils drawn over the domain the model covers (its
+``covered`` ranges: for the shipped model kS 500-1500 N/m, phiS 0.1-0.8 rad,
+phiD 0.1 rad up to phiS), each at every slip on a
 grid 0-0.5 (``--slip-step``) and ``--repeats`` noise draws, at one leg speed
 and IMU (``--omega``, ``--rate``, ``--noise``), it whitens the residual
 ``f - mu`` with the model's ``R`` (at each stance's measured smoothed noise)
@@ -41,13 +42,9 @@ from scipy.stats import chi2
 from tqdm import tqdm
 
 from slipest.features import INDEX
-from slipest.inverse.simdata import draw_envelope, simulate_features
-from slipest.inverse.surrogate import load_inverse_model
+from slipest.inverse.simdata import PHID_MIN, VARIABLES, draw_envelope, simulate_features
+from slipest.inverse.surrogate import load_inverse_model, whitener
 
-#: The covered soil domain drawn (the estimator's promise, issue 11), with slip and speed unused here.
-DOMAIN = {"slip": (0.0, 0.5), "kS": (500.0, 1500.0), "phiS": (0.1, 0.8), "dphi": (0.0, 0.35), "omega": (0.35, 1.1)}
-#: Smallest phiD = phiS - dphi drawn [rad] (the covered domain's).
-PHID_MIN = 0.1
 #: Slip lags [-] the residual's correlation is printed at.
 LAGS = (0.01, 0.02, 0.03, 0.05, 0.1, 0.2)
 #: Slip bands [-] of the heteroscedasticity table.
@@ -71,11 +68,13 @@ def main(argv=None) -> int:
     if not (a.rate > 0 and a.noise >= 0):
         ap.error("--rate must be > 0 Hz and --noise >= 0 g")
     model = load_inverse_model()
-    lo, hi = model.covered_range("omega")
-    if not lo <= a.omega <= hi:
-        ap.error(f"--omega {a.omega:g} rad/s is outside the shipped model's covered speeds {lo:g}-{hi:g} rad/s")
+    w_lo, w_hi = model.covered_range("omega")
+    if not w_lo <= a.omega <= w_hi:
+        ap.error(f"--omega {a.omega:g} rad/s is outside the shipped model's covered speeds {w_lo:g}-{w_hi:g} rad/s")
     rng = np.random.default_rng(a.seed)
-    soils = draw_envelope(a.soils, rng, DOMAIN, PHID_MIN)[:, 1:4]  # kS, phiS, dphi
+    # the soils the model covers (its promise, issue 11); the slip and speed drawn with them are not used
+    covered = {name: model.covered_range(name) for name in VARIABLES}
+    soils = draw_envelope(a.soils, rng, covered, model.covered.get("phid_min", PHID_MIN))[:, 1:4]  # kS, phiS, dphi
     slips = np.arange(0.0, 0.5 + 1e-9, a.slip_step)
     n_s, n_i, n_r = len(soils), len(slips), a.repeats
     x = np.array([(i, s[0], s[1], s[2], a.omega) for s in soils for i in slips for _ in range(n_r)])
@@ -87,8 +86,7 @@ def main(argv=None) -> int:
     # whiten each stance with R at its own measured noise (one R per distinct noise level would do; this is exact)
     z = np.full((len(x), len(model.columns)), np.nan)
     for j in np.flatnonzero(ok):
-        w = np.linalg.cholesky(np.linalg.inv(model.cov(a.omega, float(ns[j]))))
-        z[j] = (model.observe(rows[j]) - mu[j]) @ w
+        z[j] = (model.observe(rows[j]) - mu[j]) @ whitener(model.cov(a.omega, float(ns[j])))
     d = z.shape[1]
     z = z.reshape(n_s, n_i, n_r, d)
     zm = np.nanmean(z, axis=2)  # the surrogate's error at each (soil, slip): the noise averaged out

@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from slipest.inverse.surrogate import whitener
+
 #: Slip nodes of the grid inversions [-]: 0 to 0.55 by 0.01.
 SLIP_NODES = np.round(np.arange(0.0, 0.5501, 0.01), 6)
 
@@ -130,7 +132,7 @@ class GridTables:
         mu = self.model.mean_on_grid(self.nodes, g.kS, g.phiS, g.dphi, omega, noise_smooth)  # (nk, np, nd, K, d)
         mu = mu[g.mask]  # (S, K, d)
         r = self.model.cov(omega, noise_smooth)
-        w = np.linalg.cholesky(np.linalg.inv(r))  # w w^T = R^-1
+        w = whitener(r)  # w w^T = R^-1
         columnar = np.ascontiguousarray((mu @ w).transpose(2, 1, 0), dtype=np.float32)
         columnar.flags.writeable = False
         self.builds += 1

@@ -72,6 +72,12 @@ def node_terms(schedule: dict) -> np.ndarray:
     return np.array(out, dtype=np.int64)
 
 
+def whitener(cov: np.ndarray) -> np.ndarray:
+    """``W`` ``(d, d)`` with ``W W^T = cov^-1`` (lower triangular): ``(f - mu) @ W`` has identity covariance when
+    ``f - mu`` has ``cov`` (``cov``: symmetric positive definite, e.g. :meth:`FeatureSurrogate.cov`)."""
+    return np.linalg.cholesky(np.linalg.inv(cov))
+
+
 def legendre_design(u: np.ndarray, terms: np.ndarray) -> np.ndarray:
     """Design matrix ``(n, T)`` of the tensor Legendre terms ``(T, V)`` at normalised points ``u`` ``(n, V)``."""
     b = np.polynomial.legendre.legvander(u, int(terms.max()))  # (n, V, degree + 1)
@@ -347,5 +353,5 @@ def save_inverse_model(model: FeatureSurrogate, path) -> Path:
 
 
 __all__ = ["FORMAT_VERSION", "VARIABLES", "MODEL_FEATURES", "InverseModelError", "node_terms", "fit_node",
-           "legendre_design", "legendre_on_grid",
+           "legendre_design", "legendre_on_grid", "whitener",
            "FeatureSurrogate", "load_inverse_model", "save_inverse_model"]

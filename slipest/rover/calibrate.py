@@ -61,6 +61,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from slipest.diagnosis.fit import Geometry
+from slipest.inverse.surrogate import whitener
 from slipest.rover.discrepancy import Discrepancy
 from slipest.rover.fit import (
     LogSoil,
@@ -372,7 +373,7 @@ def _build_candidate(base, cand: Candidate, logs, options: CalibrateOptions, n_l
 def _extra_cov(r: np.ndarray, resid: np.ndarray) -> np.ndarray:
     """What the residuals ``(n, d)`` scatter beyond ``r``: the positive part of their covariance in ``r``'s
     whitened frame, mapped back (feature units^2)."""
-    w = np.linalg.cholesky(np.linalg.inv(r))
+    w = whitener(r)
     c = np.cov((resid @ w).T, bias=True) if len(resid) > 1 else np.zeros((r.shape[0],) * 2)
     ev, vec = np.linalg.eigh(0.5 * (c + c.T))
     ev = np.maximum(ev - 1.0, 0.0)

@@ -30,6 +30,7 @@ import numpy as np
 
 from slipest.features import INDEX
 from slipest.inverse.grid import SoilGrid
+from slipest.inverse.surrogate import whitener
 from slipest.rover.discrepancy import Discrepancy, fit_discrepancy, slip_terms
 from slipest.rover.testbed import TestbedLog
 
@@ -50,11 +51,6 @@ class LogSoil:
         return {"kS": self.kS, "phiS": self.phiS, "phiD": self.phiS - self.dphi, "dphi": self.dphi}
 
 
-def _whitener(cov: np.ndarray) -> np.ndarray:
-    """``W`` with ``W W^T = cov^-1``."""
-    return np.linalg.cholesky(np.linalg.inv(cov))
-
-
 def log_soil(model, log: TestbedLog, grid: SoilGrid | None = None, keep=None) -> LogSoil:
     """The grid cell maximising the likelihood of the log's cycles (``keep``: a subset, boolean) at their
     known slips under ``model`` (:class:`~slipest.inverse.surrogate.FeatureSurrogate` or a rover model)."""
@@ -63,7 +59,7 @@ def log_soil(model, log: TestbedLog, grid: SoilGrid | None = None, keep=None) ->
     s = np.round(lg.slip / SLIP_ROUND) * SLIP_ROUND
     levels, inv = np.unique(s, return_inverse=True)
     mu = model.mean_on_grid(levels, g.kS, g.phiS, g.dphi, lg.omega, lg.noise_smooth)[g.mask]  # (S, L, d)
-    w = _whitener(model.cov(lg.omega, lg.noise_smooth))
+    w = whitener(model.cov(lg.omega, lg.noise_smooth))
     f = model.observe(lg.features)
     ll = np.zeros(mu.shape[0])
     mw = mu @ w  # (S, L, d)
@@ -92,7 +88,7 @@ def log_residuals(model, log: TestbedLog, soil: LogSoil) -> np.ndarray:
 
 def whitened_sq(model, log: TestbedLog, resid: np.ndarray) -> np.ndarray:
     """Each cycle's squared whitened residual under the model's covariance at its leg speed and noise ``(n,)``."""
-    w = _whitener(model.cov(log.omega, log.noise_smooth))
+    w = whitener(model.cov(log.omega, log.noise_smooth))
     return np.sum((resid @ w) ** 2, axis=1)
 
 
