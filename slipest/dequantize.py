@@ -9,8 +9,10 @@ draws: ``dphi`` intervals covering 53 %). For an encoder that rounds, the
 true angle crossed the midpoint of two counts between the two samples where
 the count changed; :class:`AngleDequantizer` puts a knot there (the
 midpoint of the two samples' times, the midpoint of their angles) and
-interpolates the samples of each count linearly between its two knots, as
-:func:`slipest.diagnosis.cycles.dequantize_angle` does for a whole log.
+interpolates the samples of each count linearly between its two knots.
+:func:`dequantize_log` does the same for a whole log (the diagnosis's
+cycles): it detects on the whole log first, so the interpolation starts at
+the log's first count change instead of after the detection's counts.
 
 Online, a count's samples can only be interpolated once the next count
 change has come, so they are **held** until then: the stream's samples come
@@ -50,9 +52,10 @@ MIN_RUN = 3
 MAX_HOLD = 0.5
 
 # detection state (float64 vector): previous valid angle (unwrapped), have one, samples in the current count,
-# counts recorded, ring position, active, counts in the ring lasting MIN_RUN samples or more
-_PREV, _HAVE, _RUN, _NRING, _POS, _ACTIVE, _NLONG = range(7)
-_N_DETECT = 7
+# counts recorded, ring position, active, counts in the ring lasting MIN_RUN samples or more, whole steps known
+# beforehand (start at the first count change)
+_PREV, _HAVE, _RUN, _NRING, _POS, _ACTIVE, _NLONG, _KNOWN = range(8)
+_N_DETECT = 8
 # interpolation state: previous valid sample's time, knot time and angle (the current count's start), the knot
 # before it, knots known (0/1/2), stalled, the current count's first sample's time, unwrap offset [rad], samples
 # let out interpolated
@@ -98,7 +101,7 @@ def _observe(state, ring, t, theta):
                     state[_NLONG] += 1.0
                 state[_POS] = (pos + 1) % RUNS
                 state[_NRING] = min(state[_NRING] + 1.0, float(RUNS))
-                if state[_NRING] >= RUNS and 2.0 * state[_NLONG] > RUNS:
+                if state[_KNOWN] > 0.0 or (state[_NRING] >= RUNS and 2.0 * state[_NLONG] > RUNS):
                     started = True
                     state[_ACTIVE] = 1.0
                     state[_KT] = 0.5 * (state[_PT] + t)
@@ -174,9 +177,13 @@ class AngleDequantizer:
     optional) and returns the samples it lets out, in order, with their angle interpolated once the
     encoder is found to count whole steps; :meth:`flush` lets out what it holds at the end of a stream.
     Before that the very arrays given are returned (no copy, no delay).
+
+    ``counts_known``: the encoder is known to count whole steps (a whole log was looked at first,
+    :func:`dequantize_log`): interpolation starts at the first count change, without detection.
     """
 
-    def __init__(self):
+    def __init__(self, counts_known: bool = False):
+        self.counts_known = bool(counts_known)
         self._done = 0  # samples interpolated in the streams before this one
         self._state = np.zeros(_N_STATE)
         self.reset()
@@ -185,6 +192,7 @@ class AngleDequantizer:
         """Forget the stream (detection included; :attr:`interpolated` kept)."""
         self._done = self.interpolated
         self._state = np.zeros(_N_STATE)
+        self._state[_KNOWN] = 1.0 if self.counts_known else 0.0
         self._ring = np.zeros(RUNS)
         self._held: tuple | None = None  # (t, az, theta, ref) arrays of the held samples
         self._held_out = np.zeros(0)  # their angles as reported, unwrapped
@@ -272,4 +280,47 @@ class AngleDequantizer:
         return t, az, out, ref
 
 
-__all__ = ["AngleDequantizer", "MAX_HOLD", "MIN_RUN", "RUNS"]
+def counts_whole_steps(t, theta) -> bool:
+    """True when the encoder of a whole log is seen to count whole steps while the leg moves somewhere in it
+    (the stream's detection rule, module docstring). ``t`` [s], ``theta`` [rad]: arrays of one length."""
+    t = np.asarray(t, dtype=np.float64)
+    theta = np.asarray(theta, dtype=np.float64)
+    if t.shape != theta.shape:
+        raise ValueError(f"t and theta must have the same length ({t.size} and {theta.size})")
+    return _observe_many(np.zeros(_N_STATE), np.zeros(RUNS), t, theta) >= 0
+
+
+def dequantize_log(t, theta) -> np.ndarray:
+    """The angle [rad] of a whole log, interpolated between its count changes when its encoder counts whole
+    steps (:func:`counts_whole_steps`), else ``theta`` itself.
+
+    The same interpolation as the stream's (:class:`AngleDequantizer`), started at the log's first count
+    change; a whole log also knows its first count's end, so the samples before the first change are
+    extrapolated back along the first two knots, as those after the last change are forward along the last
+    two. A count held longer than :data:`MAX_HOLD` (a leg standing still, the first count included) is as
+    reported. Non-finite angles keep their place; a wrapped angle comes out unwrapped. ``t`` [s], ``theta``
+    [rad]: arrays of one length."""
+    t = np.asarray(t, dtype=np.float64)
+    theta = np.asarray(theta, dtype=np.float64)
+    if not counts_whole_steps(t, theta):
+        return theta
+    deq = AngleDequantizer(counts_known=True)
+    parts = [deq.feed(t, np.zeros(t.size), theta)[2]]
+    held = deq.flush()
+    if held is not None:
+        parts.append(held[2])
+    out = np.concatenate(parts)
+    ok = np.flatnonzero(np.isfinite(t) & np.isfinite(theta))
+    raw = np.unwrap(theta[ok])  # as reported, on the stream's unwrapped scale (a jump beyond pi is a wrap)
+    changes = np.flatnonzero(np.diff(raw) != 0) + 1  # positions in ``ok`` of the samples that start a count
+    if changes.size >= 2 and t[ok[changes[0]]] - t[ok[0]] <= MAX_HOLD:
+        # the first two knots (a count change: midpoint of the two samples' times and of their angles)
+        kt = 0.5 * (t[ok[changes[:2] - 1]] + t[ok[changes[:2]]])
+        kv = 0.5 * (raw[changes[:2] - 1] + raw[changes[:2]])
+        if kt[1] > kt[0]:
+            first = ok[: changes[0]]
+            out[first] = kv[0] + (t[first] - kt[0]) * (kv[1] - kv[0]) / (kt[1] - kt[0])
+    return out
+
+
+__all__ = ["AngleDequantizer", "MAX_HOLD", "MIN_RUN", "RUNS", "counts_whole_steps", "dequantize_log"]

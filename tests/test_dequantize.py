@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from slipest.cli.main import main
-from slipest.dequantize import MAX_HOLD, AngleDequantizer
+from slipest.dequantize import MAX_HOLD, AngleDequantizer, counts_whole_steps, dequantize_log
 from slipest.io.log_csv import LogWriter
 from slipest.online import SlipEstimator
 from tests.log_makers import stream
@@ -186,3 +186,32 @@ def test_a_replay_of_a_coarse_encoder_log_says_the_angle_was_interpolated_and_no
     assert rc == 0
     line = [ln for ln in err.splitlines() if "whole counts" in ln]
     assert len(line) == 1 and "150 a revolution" in line[0] and "looks wrong" not in line[0]
+
+
+def test_a_whole_log_is_interpolated_as_the_stream_is_once_the_stream_has_started():
+    t, fine = _angle(stop=(6.0, 7.0))
+    coarse = _counts(fine, 150)
+    out = dequantize_log(t, coarse)
+    stream = AngleDequantizer()
+    got = _all([stream.feed(t, np.zeros(t.size), coarse), stream.flush()])[2]
+    assert out.shape == t.shape
+    # the stream starts after its detection's counts; from there the two are the same kernel, sample for sample
+    start = int(np.flatnonzero(got != coarse)[0])
+    assert 0 < start < t.size // 4
+    np.testing.assert_array_equal(out[start:], got[start:])
+    # the whole log is interpolated before the stream's start too, its first count extrapolated back
+    moving = (t < 5.9) | (t >= 7.1)  # a count on either side of the stop is as reported, as in the stream
+    q = 2 * math.pi / 150
+    assert np.max(np.abs(coarse - fine)[:start]) > 0.4 * q
+    assert np.max(np.abs(out - fine)[moving]) < 0.1 * q
+    assert np.max(np.abs(out - fine)[:start]) < 0.1 * q
+
+
+def test_a_fine_or_short_log_is_returned_as_it_is_and_mismatched_arrays_are_refused():
+    t, fine = _angle(seconds=3.0)
+    assert not counts_whole_steps(t, fine)
+    assert dequantize_log(t, fine) is not None
+    np.testing.assert_array_equal(dequantize_log(t, fine), fine)
+    np.testing.assert_array_equal(dequantize_log(t[:5], _counts(fine[:5], 150)), _counts(fine[:5], 150))
+    with pytest.raises(ValueError, match="same length"):
+        dequantize_log(t, fine[:-1])

@@ -538,15 +538,15 @@ def test_per_edge_offsets_equal_a_constant_offset_when_constant():
 
 
 def test_a_coarse_encoder_is_interpolated_between_its_count_changes():
-    from slipest.diagnosis.cycles import dequantize_angle
+    from slipest.dequantize import dequantize_log
 
     s = _log([0.2, 0.3, 0.3, 0.4], noise=0.005)
     step = 2 * math.pi / 200  # 200 counts per revolution: the count changes every ~10 samples at 1 kHz
     coarse = np.round(s.theta / step) * step
-    fine = dequantize_angle(s.t, coarse)
+    fine = dequantize_log(s.t, coarse)
     assert np.max(np.abs(coarse - s.theta)) > 0.4 * step
     assert np.max(np.abs(fine - s.theta)) < 0.02 * step
-    np.testing.assert_array_equal(dequantize_angle(s.t, s.theta), s.theta)  # a fine encoder: unchanged
+    np.testing.assert_array_equal(dequantize_log(s.t, s.theta), s.theta)  # a fine encoder: unchanged
     # the cycles of the coarse log are nearly those of the fine one (the diagnosis found 15-40 mg gaps before)
     cq, cs = cut_cycles(s.t, s.az, coarse, s.slip, 4), _cycles(s)
     assert np.sqrt(np.mean((cq.y - cs.y) ** 2)) / G < 0.003

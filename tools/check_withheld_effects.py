@@ -48,7 +48,7 @@ Out-of-catalog effects (made up here, physically plausible):
 * ``encoder_quantisation``: a coarse encoder, theta rounded to
   ``2 pi / counts`` with counts 128-256 per revolution (no Da criterion;
   the diagnosis interpolates such an angle between its count changes,
-  :func:`slipest.diagnosis.cycles.dequantize_angle`, so ``none`` is a right
+  :func:`slipest.dequantize.dequantize_log`, so ``none`` is a right
   answer too).
 
 The first two are drawn like catalog effects (Da changed by >= 10%).

@@ -22,7 +22,8 @@ interpolated from their neighbours, if at least :data:`MIN_FILLED` of the
 bins hold samples. A cycle whose phase goes backwards (the rover reversing)
 or holds a non-finite ``az`` is dropped. A coarse encoder's angle (whole
 counts, repeated over several samples) is interpolated between its count
-changes first (:func:`dequantize_angle`).
+changes first (:func:`slipest.dequantize.dequantize_log`, the stream's
+interpolation over the whole log).
 
 Each cycle's leg speed ``omega`` is the mean speed of its *speed level*:
 cycles whose speeds (least-squares slope of ``theta`` over the cycle)
@@ -49,6 +50,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from slipest.dequantize import dequantize_log
 from slipest.diagnosis.predict import Grid
 
 #: Fewest share of the analysis bins a cycle's samples must fill (the rest are interpolated).
@@ -175,7 +177,7 @@ def cut_cycles(t, az, theta, slip, n_legs: int, grid: Grid | None = None, log_in
                          f"NaN). {NEEDS_SLIP}")
     if np.any(np.diff(theta) < -math.pi):
         theta = np.unwrap(theta)  # a wrapped angle ([-pi, pi) or [0, 2 pi)) unwrapped; 0 stays at a midstance
-    theta = dequantize_angle(t, theta)
+    theta = dequantize_log(t, theta)
     k = np.floor((theta + half) / (2 * half)).astype(np.int64)
     phase = theta - 2 * half * k
     noise = sample_noise(az)
@@ -272,37 +274,6 @@ def cut_cycles(t, az, theta, slip, n_legs: int, grid: Grid | None = None, log_in
         touchdowns=_touchdowns(ks, k, phase, half),
     )
 
-
-#: Share of consecutive samples repeating the previous angle exactly above which the encoder counts whole steps.
-QUANTIZED_SHARE = 0.5
-
-
-def dequantize_angle(t, theta) -> np.ndarray:
-    """The angle [rad] of an encoder that reports whole counts, interpolated between its count changes.
-
-    When at least :data:`QUANTIZED_SHARE` of consecutive samples repeat the
-    previous angle exactly (a coarse encoder: the count changes every few
-    samples), the true angle crossed the midpoint of two counts (a rounding
-    encoder) between the two samples where the count changes: the angle at
-    each sample is interpolated between those instants (midpoints of the two
-    samples' times) at those midpoint angles, and extrapolated at the ends
-    along the first and last such segment. Otherwise ``theta`` unchanged.
-    """
-    t = np.asarray(t, dtype=float)
-    theta = np.asarray(theta, dtype=float)
-    d = np.diff(theta)
-    if d.size < 3 or np.mean(d == 0) < QUANTIZED_SHARE:
-        return theta
-    ch = np.flatnonzero(d != 0)
-    if ch.size < 2:
-        return theta
-    tc = 0.5 * (t[ch] + t[ch + 1])
-    vc = 0.5 * (theta[ch] + theta[ch + 1])
-    out = np.interp(t, tc, vc)
-    lo, hi = t < tc[0], t > tc[-1]
-    out[lo] = vc[0] + (t[lo] - tc[0]) * (vc[1] - vc[0]) / (tc[1] - tc[0])
-    out[hi] = vc[-1] + (t[hi] - tc[-1]) * (vc[-1] - vc[-2]) / (tc[-1] - tc[-2])
-    return out
 
 
 def _touchdowns(ks, k, phase, half) -> np.ndarray:
