@@ -44,3 +44,23 @@ def test_grid_loglik_distances_equal_the_one_coordinate_sum(D, K, S, seed, sprea
     top = d.max(axis=0)
     expect = top + np.log(0.02 * np.exp(d - top).sum(axis=0))
     np.testing.assert_allclose(lc, expect, rtol=0, atol=0.02)  # fexp's error (grid_kernels docstring)
+
+
+def test_a_refined_soil_grid_keeps_its_ranges_and_levels_and_refuses_a_bad_factor():
+    import pytest
+
+    from slipest.inverse.grid import SoilGrid
+
+    g = SoilGrid.default()
+    r = g.refined(2)
+    for a, b in ((g.kS, r.kS), (g.phiS, r.phiS), (g.dphi, r.dphi)):
+        assert b.size == 2 * a.size - 1
+        assert b[0] == a[0] and b[-1] == a[-1]
+        np.testing.assert_allclose(b[::2], a, atol=1e-12)  # the shipped levels are among the refined ones
+    np.testing.assert_allclose(r.steps(), g.steps() / 2)
+    assert r.phid_min == g.phid_min
+    assert 6 * g.size < r.size < 8 * g.size  # about 8x the cells (phiD >= phid_min cuts a corner)
+    assert g.refined(1).key() == g.key()
+    for bad in (0, -1, 1.5, True, "2"):
+        with pytest.raises(ValueError, match="integer >= 1"):
+            g.refined(bad)

@@ -27,6 +27,7 @@ on this benchmark's official seed (2024): development used seeds 11 and 7.
     python tools/bench_accuracy.py                    # 12 runs x 3 conditions x 4 soils x 25 cycles, ~4 min
     python tools/bench_accuracy.py --runs 4 --seed 11 --conditions 1000:0.01
     python tools/bench_accuracy.py --conditions 200:0.01,2000:0.01,500:0.02 --json out.json
+    python tools/bench_accuracy.py --runs 4 --seed 7 --conditions 1000:0.01 --grid-refine 2   # 8x the cells
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ import numpy as np
 from tqdm import tqdm
 
 from slipest.inverse.feature_inverse import FeatureInverse
+from slipest.inverse.grid import SoilGrid
 from slipest.inverse.surrogate import load_inverse_model
 from slipest.model.params import StickSlipParams
 from slipest.model.scenario import Scenario
@@ -91,9 +93,11 @@ def scenario(run: dict, rate: float, noise: float) -> Scenario:
                               **{k: run[k] for k in ("slip", "kS", "phiS", "phiD", "omega")})
 
 
-def run_one(run: dict, rate: float, noise: float, inverse: FeatureInverse, model, inject=None) -> dict:
+def run_one(run: dict, rate: float, noise: float, inverse: FeatureInverse, model, inject=None,
+            estimator: dict | None = None) -> dict:
     """Estimates of one run (soil unknown) and the same cycles' soil-known inversions; ``inject(t, az, theta,
-    cycle)``, when given, returns the stream with faults in it (``tools/bench_faults.py``)."""
+    cycle)``, when given, returns the stream with faults in it (``tools/bench_faults.py``); ``estimator``:
+    options of the soil and slip estimator (``SlipEstimator(estimator=...)``), default its own."""
     n = run["slip"].size
     sc = scenario(run, rate, noise)
     rows = {k: np.full(n, np.nan) for k in ("slip", "slip_std", "dphi", "dphi_std", "slip_known", "slip_known_std")}
@@ -113,7 +117,7 @@ def run_one(run: dict, rate: float, noise: float, inverse: FeatureInverse, model
             rows["slip_known"][k], rows["slip_known_std"][k] = inverse.slip_known_soil(
                 est.last_features, run["kS"][k], run["phiS"][k], run["phiD"][k])
 
-    est = SlipEstimator(n_legs=sc.n_legs, model=model, on_estimate=on_estimate)
+    est = SlipEstimator(n_legs=sc.n_legs, model=model, on_estimate=on_estimate, estimator=estimator)
     if inject is None:
         chunks = ((c.t, c.az, c.theta) for c in iter_stream(sc))
     else:
@@ -187,7 +191,13 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=2024)
     ap.add_argument("--model", help="inverse model file (default: the shipped one)")
     ap.add_argument("--json", help="also write the figures to this JSON file")
+    ap.add_argument("--grid-refine", type=int, default=1, metavar="N",
+                    help="research: the estimator's soil grid with every spacing divided by N (N**3 times the cells "
+                         "and the work per cycle; default 1, the shipped grid)")
     args = ap.parse_args(argv)
+    if args.grid_refine < 1:
+        ap.error(f"--grid-refine must be >= 1, got {args.grid_refine}")
+    estimator = None if args.grid_refine == 1 else {"grid": SoilGrid.default().refined(args.grid_refine)}
     model = load_inverse_model(args.model)
     inverse = FeatureInverse(model)
     t0 = time.time()
@@ -198,7 +208,7 @@ def main(argv=None) -> int:
         for rate, noise in args.conditions:
             rows = []
             for run in runs:
-                rows.append(run_one(run, rate, noise, inverse, model))
+                rows.append(run_one(run, rate, noise, inverse, model, estimator=estimator))
                 bar.update(1)
             name = f"{rate:g} Hz, {noise:g} g"
             groups = {"all": figures(rows, lambda c: np.ones(c["since"].size, bool), args.from_cycle)}
@@ -213,8 +223,9 @@ def main(argv=None) -> int:
             noise_est = [r["noise"] for r in rows]
             results[name] = {"groups": groups, "noise_estimated_g": [float(np.nanmin(noise_est)),
                                                                      float(np.nanmax(noise_est))]}
+    grid = "" if estimator is None else f", soil grid refined {args.grid_refine}x ({estimator['grid'].size} cells)"
     print(f"{args.runs} runs x {args.soils} soils x {args.cycles_per_soil} cycles per condition, seed {args.seed}, "
-          f"scored from the {args.from_cycle}th cycle on a soil; {time.time() - t0:.0f} s")
+          f"scored from the {args.from_cycle}th cycle on a soil{grid}; {time.time() - t0:.0f} s")
     for name, res in results.items():
         lo, hi = res["noise_estimated_g"]
         print_table(f"\n{name} (noise estimated from the data: {lo:.4f}-{hi:.4f} g)", res["groups"])
