@@ -13,7 +13,8 @@ intervals (an angle offset of 0.12-0.18 rad: slip 0.09 low, 95 % intervals
 covering about 57 %; docs/estimator.md).
 
 :func:`swap_step` finds the step in the samples around one swap;
-:class:`SwapTiming` follows the steps of consecutive cycles and decides
+:func:`swap_summary` reads every swap of a whole log (the diagnosis's
+report); :class:`SwapTiming` follows the steps of consecutive cycles and decides
 when the IMU and the encoder disagree by more than :data:`TOLERANCE`
 (consistently over :data:`MIN_STEPS` steps): it then gives the angle to
 take off ``theta`` (the offset times the leg speed) so that they agree
@@ -28,6 +29,7 @@ from __future__ import annotations
 import math
 import statistics
 from collections import deque
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -260,3 +262,113 @@ class SwapTiming:
         self._tail = None  # the stream is re-timed from the next sample
         self.settle.clear()  # measured on the old timing
         return target
+
+
+@dataclass(frozen=True)
+class SwapSummary:
+    """What the leg swaps of a whole log say about the IMU's timing against the encoder (:func:`swap_summary`).
+
+    looked, measured: swaps looked at, and with a step found [-]. offset_s: median offset of the IMU's
+    step from the encoder's swap [s] (positive: the IMU shows the swap after the encoder says it happened),
+    NaN without steps; offset_rad: the same in leg angle [rad] (each step's offset times its cycle's leg
+    speed); agree_time, agree_angle: steps within :data:`TOLERANCE` of the median offset in time, and in
+    angle (at their leg speed) [-]. settling: median settling ratio of the swaps [-] (:data:`SETTLE_SPAN`;
+    0 for an IMU that follows the hub), NaN without any; settled: how many swaps gave one (read at the
+    encoder's swap, so meaningful only when the timing is not :attr:`off`).
+    """
+
+    looked: int
+    measured: int
+    offset_s: float
+    offset_rad: float
+    agree_time: int
+    agree_angle: int
+    settling: float
+    settled: int
+
+    @property
+    def off(self) -> bool:
+        """At least :data:`MIN_STEPS` steps found and their median beyond :data:`TOLERANCE`."""
+        return self.measured >= MIN_STEPS and abs(self.offset_s) > TOLERANCE
+
+    @property
+    def sluggish(self) -> bool:
+        """At least :data:`MIN_STEPS` settling ratios, their median above :data:`SLUGGISH`, and the timing not
+        :attr:`off` (the settling is read at the encoder's swap: off, it is read at the wrong time)."""
+        return not self.off and self.settled >= MIN_STEPS and self.settling > SLUGGISH
+
+    def explanation(self) -> str:
+        """One sentence: the offset and what it looks like, and how the IMU settles."""
+        if self.measured == 0:
+            timing = (f"no step found at the {self.looked} leg swaps (no stick-slip at the end of the stance, or "
+                      "an IMU path that smooths it)")
+        else:
+            timing = (f"the IMU's step at the leg swaps is {1000 * self.offset_s:+.1f} ms "
+                      f"({self.offset_rad:+.3f} rad) from the encoder's swap, median of {self.measured} of "
+                      f"{self.looked} swaps")
+            if self.off:
+                kind = ("an encoder zero offset (the same angle at every speed)" if self.agree_angle > self.agree_time
+                        else "a time skew between the IMU and the encoder (the same time at every speed)"
+                        if self.agree_time > self.agree_angle else "a time skew or an encoder zero offset (one speed "
+                        "cannot tell them apart)")
+                timing += f": off by more than {1000 * TOLERANCE:.0f} ms, like {kind}"
+            elif self.measured < MIN_STEPS:
+                timing += f" (fewer than {MIN_STEPS} steps: no conclusion)"
+            else:
+                timing += f": within {1000 * TOLERANCE:.0f} ms"
+        if self.settled == 0:
+            return timing
+        if self.off:
+            return f"{timing}; settling not read (it is read at the encoder's swap, which is off)"
+        settle = (f"settling ratio {self.settling:.2f} over {self.settled} swaps"
+                  + (f": above {SLUGGISH}, the IMU's path smooths the swap (a low-pass filter, a soft mount)"
+                     if self.sluggish else ""))
+        return f"{timing}; {settle}"
+
+
+def swap_summary(t, az, theta, n_legs: int) -> SwapSummary:
+    """Every leg swap of a whole log measured as :class:`SwapTiming` measures them, without correcting the
+    angle: ``t`` [s], ``az`` [m/s^2], ``theta`` [rad] (unwrapped or wrapped; a whole-count encoder's angle is
+    interpolated first, :func:`slipest.dequantize.dequantize_log`), arrays of one length; samples with a
+    non-finite value are left out. A cycle whose angle does not increase (the leg standing still or
+    reversing) gives no swap with its neighbours."""
+    from slipest.dequantize import dequantize_log
+
+    t = np.asarray(t, dtype=float)
+    az = np.asarray(az, dtype=float)
+    theta = np.asarray(theta, dtype=float)
+    if not (t.shape == az.shape == theta.shape):
+        raise ValueError(f"t, az and theta must have the same length ({t.size}, {az.size}, {theta.size})")
+    if n_legs < 1:
+        raise ValueError(f"n_legs must be >= 1, got {n_legs}")
+    ok = np.isfinite(t) & np.isfinite(az) & np.isfinite(theta)
+    t, az, theta = t[ok], az[ok], theta[ok]
+    if theta.size and np.any(np.diff(theta) < -math.pi):
+        theta = np.unwrap(theta)
+    theta = dequantize_log(t, theta)
+    half = math.pi / n_legs
+    k = np.floor((theta + half) / (2 * half)).astype(np.int64)
+    timing = SwapTiming(n_legs, tolerance=math.inf, min_steps=1, memory=max(1, int(k.size)))  # never corrects
+    starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+    ends = np.r_[starts[1:], k.size]
+    for a, b in zip(starts, ends):
+        if b - a < 3 or t[b - 1] <= t[a]:
+            timing.forget_tail()
+            continue
+        phase = theta[a:b] - 2 * half * k[a]
+        omega = float(theta[b - 1] - theta[a]) / float(t[b - 1] - t[a])
+        if not omega > 0:
+            timing.forget_tail()
+            continue
+        timing.add_cycle(int(k[a]), t[a:b], az[a:b], phase, omega)
+    steps = np.asarray(timing.steps, dtype=float).reshape(-1, 3)
+    if steps.shape[0]:
+        t_med, a_med = float(np.median(steps[:, 0])), float(np.median(steps[:, 1]))
+        agree_t = int(np.count_nonzero(np.abs(steps[:, 0] - t_med) <= TOLERANCE))
+        agree_a = int(np.count_nonzero(np.abs(steps[:, 1] - a_med) <= TOLERANCE * steps[:, 2]))
+    else:
+        t_med = a_med = math.nan
+        agree_t = agree_a = 0
+    settle = list(timing.settle)
+    return SwapSummary(timing.looked, timing.measured, t_med, a_med, agree_t, agree_a,
+                       statistics.median(settle) if settle else math.nan, len(settle))

@@ -302,6 +302,10 @@ def test_cli_writes_the_json_keys(tmp_path, capsys):
     assert doc["verdict"] in ("imu_saturation", "none", "unexplained")
     printed = capsys.readouterr().out
     assert "verdict:" in printed and "gap of the nominal model" in printed
+    # the leg swaps, read model-free beside the fits: a clean timing
+    assert [sw["log"] for sw in doc["swaps"]] == [str(log)]
+    assert doc["swaps"][0]["looked"] > 0 and doc["swaps"][0]["off"] is False
+    assert f"{log}: the IMU's step at the leg swaps is" in printed or f"{log}: no step found" in printed
     assert sorted(p.name for p in (tmp_path / "png").iterdir()) == ["gap_by_angle.png", "ranking.png", "waveforms.png"]
     # a log without the slip column is refused with a clear message
     bare = tmp_path / "bare.csv"

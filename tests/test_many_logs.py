@@ -151,5 +151,6 @@ def test_diagnose_per_log_writes_one_row_per_log(drives, tmp_path, capsys):
         assert r["verdict"] in ("none", "imu_saturation", "unexplained") and r["error"] == ""
         assert int(r["cycles"]) >= 3 and float(r["mean_slip"]) == pytest.approx(slip, abs=0.06)
         assert 0.0 < float(r["dphi"]) < 1.0 and float(r["kS"]) > 0 and float(r["gap_nominal_mg"]) >= 0
+        assert int(r["swap_steps"]) >= 0 and r["swap_offset_ms"] != ""  # the leg swaps read (NaN: no step)
     assert by["day2/broken.csv"]["verdict"] == "error" and "theta" in by["day2/broken.csv"]["error"]
     assert "diagnose: 3 logs:" in err and "error 1" in err

@@ -12,7 +12,7 @@ from slipest.model.scenario import Scenario
 from slipest.model.stream import simulate_stream
 from slipest.online import SlipEstimator
 from slipest.segmentation import CycleSegmenter
-from slipest.swap_timing import SwapTiming, swap_step
+from slipest.swap_timing import TOLERANCE, SwapTiming, swap_step, swap_summary
 
 
 def _log(effects=(), n=30, omega=None, rate=1000.0, seed=5):
@@ -218,3 +218,47 @@ def test_cycles_after_a_restart_are_emitted_after_a_re_timing():
     second = est.push_many(run.t + run.t[-1] + 1.0, run.az, run.theta)  # the device restarted: theta from 0
     assert sum(e.ok for e in second) >= 25 and est.counters["cycles_retimed"] == 1
     assert min(e.cycle for e in second) < max(e.cycle for e in first)
+
+
+# --- a whole log, read for the diagnosis's report ------------------------------------------------
+
+
+def test_a_whole_log_summary_reads_a_clean_timing_a_time_skew_an_encoder_offset_and_a_low_pass():
+    clean, _ = _log(omega=SPEEDS)
+    sw = swap_summary(clean.t, clean.az, clean.theta, 4)
+    assert sw.looked == 29 and sw.measured >= 5
+    assert abs(sw.offset_s) <= 0.001 and not sw.off and not sw.sluggish
+    assert "within 12 ms" in sw.explanation()
+    # the encoder's angle re-timed 30 ms late (the IMU's step then comes 30 ms before the encoder's swap)
+    late = np.interp(clean.t - 0.030, clean.t, clean.theta)
+    sw = swap_summary(clean.t, clean.az, late, 4)
+    assert sw.off and sw.offset_s == pytest.approx(-0.030, abs=0.002) and sw.agree_time > sw.agree_angle
+    assert "time skew" in sw.explanation() and not sw.sluggish
+    # an encoder zero offset: the same angle whatever the speed
+    sw = swap_summary(clean.t, clean.az, clean.theta + 0.05, 4)
+    assert sw.off and sw.offset_rad == pytest.approx(0.05, abs=0.005) and sw.agree_angle > sw.agree_time
+    assert "encoder zero offset" in sw.explanation()
+    # its settling, read at the encoder's (wrong) swap, reads 0.25 here: not reported as a sluggish IMU
+    assert sw.settled >= 5 and sw.settling > 0.12 and not sw.sluggish
+    assert "settling not read" in sw.explanation()
+    # an IMU behind a 4 Hz low-pass: no sharp step, and it settles slowly
+    lp, _ = _log(effects=({"name": "imu_lowpass", "cutoff": 4.0},))
+    sw = swap_summary(lp.t, lp.az, lp.theta, 4)
+    assert sw.settled >= 5 and sw.sluggish and "smooths the swap" in sw.explanation()
+
+
+def test_a_whole_log_summary_of_a_wrapped_angle_with_gaps_is_that_of_the_clean_one_and_bad_input_is_refused():
+    clean, _ = _log(omega=SPEEDS)
+    ref = swap_summary(clean.t, clean.az, clean.theta, 4)
+    theta = np.mod(clean.theta + math.pi, 2 * math.pi) - math.pi  # wrapped to [-pi, pi)
+    az = clean.az.copy()
+    az[::997] = np.nan  # lost samples are left out
+    sw = swap_summary(clean.t, az, theta, 4)
+    assert sw.looked == ref.looked and abs(sw.offset_s - ref.offset_s) <= TOLERANCE
+    assert sw.measured >= ref.measured - 3
+    with pytest.raises(ValueError, match="same length"):
+        swap_summary(clean.t, clean.az[:-1], clean.theta, 4)
+    with pytest.raises(ValueError, match="n_legs"):
+        swap_summary(clean.t, clean.az, clean.theta, 0)
+    empty = swap_summary(clean.t[:2], clean.az[:2], clean.theta[:2], 4)
+    assert empty.looked == 0 and math.isnan(empty.offset_s) and not empty.off

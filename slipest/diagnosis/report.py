@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -81,6 +82,8 @@ def to_dict(d: Diagnosis, logs=()) -> dict:
         "gap_definition": GAP_DEFINITION,
         "units": "gaps in g, angles in rad, parameters SI",
         "logs": [str(x) for x in logs],
+        "swaps": [{"log": str(label), **dataclasses.asdict(sw), "off": sw.off, "sluggish": sw.sluggish,
+                   "units": {"offset_s": "s", "offset_rad": "rad", "settling": "-"}} for label, sw in d.swaps],
         "elapsed_s": d.elapsed_s,
     }
     return _clean(out)
@@ -147,6 +150,10 @@ def summary(d: Diagnosis) -> str:
         lines.append("which: not fitted (the nominal model explains the data within noise)")
     for name, why in d.skipped.items():
         lines.append(f"  not fitted: {name}, {why}")
+    if d.swaps:
+        lines.append("IMU against the encoder at the leg swaps (model-free):")
+        for label, sw in d.swaps:
+            lines.append(f"  {label}: {sw.explanation()}")
     lines.append(f"elapsed: {d.elapsed_s:.1f} s")
     return "\n".join(lines)
 

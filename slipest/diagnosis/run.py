@@ -65,7 +65,9 @@ class Diagnosis:
     effect's, under ``"after"``). predictions: held-out predictions
     ``(C_test, nb)`` [m/s^2] of the nominal model and of each fitted effect.
     skipped: effects not fitted because these cycles cannot tell them from
-    another fitted one -> the reason.
+    another fitted one -> the reason. swaps: ``(log label, SwapSummary)``
+    per log, the IMU's timing against the encoder at the leg swaps
+    (:func:`slipest.swap_timing.swap_summary`; empty when not measured).
     """
 
     verdict: str
@@ -85,6 +87,7 @@ class Diagnosis:
     fits: dict = field(default_factory=dict)
     effects_fitted: bool = True
     elapsed_s: float = 0.0
+    swaps: tuple = ()
     skipped: dict = field(default_factory=dict)
 
     @property

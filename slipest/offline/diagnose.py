@@ -7,6 +7,8 @@ logs that disagree are refused), cuts and bins their cycles and runs
 :func:`slipest.diagnosis.run.diagnose` on all of them together.
 :func:`diagnose_rows` is the many-logs worker: one log diagnosed on its own,
 its row of the table (:data:`DIAGNOSE_COLUMNS`) out, any error in the row.
+Beside the fits, each log's leg swaps are read for the IMU's timing against
+the encoder (:func:`slipest.swap_timing.swap_summary`), model-free.
 
 Errors name the file: :class:`~slipest.io.log_csv.LogFormatError` (a
 malformed log), ``OSError`` (cannot read it), ``ValueError`` (no slip
@@ -16,6 +18,7 @@ cycles).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -29,9 +32,11 @@ __all__ = ["DIAGNOSE_COLUMNS", "DiagnoseOptions", "diagnose_logs", "diagnose_row
 #: The many-logs table of the diagnosis, one row per log: cycles (cut, fitted, held out), the mean
 #: logged slip [-], the nominal model's fitted soil (kS [N/m], phiS, dphi [rad], kappa [-]), the held-out
 #: gap before and after the best effect [mg], the verdict (an effect, ``none``, ``unexplained``, or
-#: ``error``), the error, the seconds it took.
+#: ``error``), the IMU's timing against the encoder at the leg swaps (median offset [ms], steps found,
+#: settling ratio [-]: :class:`slipest.swap_timing.SwapSummary`), the error, the seconds it took.
 DIAGNOSE_COLUMNS = ("log", "cycles", "fitted", "held_out", "mean_slip", "kS", "phiS", "dphi", "kappa",
-                    "gap_nominal_mg", "gap_after_mg", "verdict", "error", "seconds")
+                    "gap_nominal_mg", "gap_after_mg", "verdict", "swap_offset_ms", "swap_steps", "settling", "error",
+                    "seconds")
 
 
 @dataclass(frozen=True)
@@ -95,6 +100,7 @@ def diagnose_logs(paths, options: DiagnoseOptions = DiagnoseOptions(), progress=
     from slipest.diagnosis.fit import FitBudget
     from slipest.diagnosis.predict import Grid
     from slipest.diagnosis.run import diagnose
+    from slipest.swap_timing import swap_summary
 
     effects = options.checked_effects()
     paths = [str(p) for p in paths]
@@ -110,8 +116,10 @@ def diagnose_logs(paths, options: DiagnoseOptions = DiagnoseOptions(), progress=
         except ValueError as exc:
             raise ValueError(f"{path}: {exc}") from None
     budget = FitBudget().scaled(0.5) if options.quick else FitBudget()
-    return diagnose(concat(sets), geometry, effects, seed=options.seed, budget=budget, rank_all=options.rank_all,
-                    progress=progress)
+    d = diagnose(concat(sets), geometry, effects, seed=options.seed, budget=budget, rank_all=options.rank_all,
+                 progress=progress)
+    swaps = tuple((path, swap_summary(log.t, log.az, log.theta, geometry.nL)) for path, log in zip(paths, logs))
+    return dataclasses.replace(d, swaps=swaps)
 
 
 def diagnose_rows(log, options: DiagnoseOptions = DiagnoseOptions()) -> list[dict]:
@@ -132,4 +140,7 @@ def diagnose_rows(log, options: DiagnoseOptions = DiagnoseOptions()) -> list[dic
                kS=soil["kS"], phiS=soil["phiS"], dphi=soil["dphi"], kappa=soil["kappa"],
                gap_nominal_mg=d.gap_nominal * 1000, gap_after_mg=d.gap_after * 1000, verdict=d.verdict,
                seconds=time.monotonic() - t0)
+    if d.swaps:
+        sw = d.swaps[0][1]
+        row.update(swap_offset_ms=sw.offset_s * 1000, swap_steps=sw.measured, settling=sw.settling)
     return [row]
