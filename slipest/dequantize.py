@@ -291,17 +291,23 @@ def counts_whole_steps(t, theta) -> bool:
 
 
 def dequantize_log(t, theta) -> np.ndarray:
-    """The angle [rad] of a whole log, interpolated between its count changes when its encoder counts whole
-    steps (:func:`counts_whole_steps`), else ``theta`` itself.
+    """The angle [rad] of a whole log, unwrapped (a jump below -pi between valid samples is a wrap), and
+    interpolated between its count changes when its encoder counts whole steps (:func:`counts_whole_steps`).
 
     The same interpolation as the stream's (:class:`AngleDequantizer`), started at the log's first count
     change; a whole log also knows its first count's end, so the samples before the first change are
     extrapolated back along the first two knots, as those after the last change are forward along the last
     two. A count held longer than :data:`MAX_HOLD` (a leg standing still, the first count included) is as
-    reported. Non-finite angles keep their place; a wrapped angle comes out unwrapped. ``t`` [s], ``theta``
-    [rad]: arrays of one length."""
+    reported. Non-finite angles keep their place. ``t`` [s], ``theta`` [rad]: arrays of one length (the
+    array itself returned when there is nothing to change)."""
     t = np.asarray(t, dtype=np.float64)
     theta = np.asarray(theta, dtype=np.float64)
+    if t.shape != theta.shape:
+        raise ValueError(f"t and theta must have the same length ({t.size} and {theta.size})")
+    ok = np.isfinite(t) & np.isfinite(theta)
+    if np.any(np.diff(theta[ok]) < -math.pi):  # a wrapped angle ([-pi, pi) or [0, 2 pi)), unwrapped
+        theta = theta.copy()
+        theta[ok] = np.unwrap(theta[ok])
     if not counts_whole_steps(t, theta):
         return theta
     deq = AngleDequantizer(counts_known=True)
@@ -310,8 +316,8 @@ def dequantize_log(t, theta) -> np.ndarray:
     if held is not None:
         parts.append(held[2])
     out = np.concatenate(parts)
-    ok = np.flatnonzero(np.isfinite(t) & np.isfinite(theta))
-    raw = np.unwrap(theta[ok])  # as reported, on the stream's unwrapped scale (a jump beyond pi is a wrap)
+    ok = np.flatnonzero(ok)
+    raw = theta[ok]  # as reported, unwrapped
     changes = np.flatnonzero(np.diff(raw) != 0) + 1  # positions in ``ok`` of the samples that start a count
     if changes.size >= 2 and t[ok[changes[0]]] - t[ok[0]] <= MAX_HOLD:
         # the first two knots (a count change: midpoint of the two samples' times and of their angles)

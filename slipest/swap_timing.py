@@ -154,6 +154,20 @@ def swap_step(t: np.ndarray, az: np.ndarray, t_swap: float, reach_s: float, leve
     return float(offset), float(ratio)
 
 
+def agreement(steps, tolerance: float) -> tuple[float, float, int, int]:
+    """Steps ``(offset in time [s], in angle [rad], leg speed [rad/s])``: their median offset in time and in
+    angle, and how many agree with each within ``tolerance`` [s] (in angle: at their own leg speed);
+    ``(nan, nan, 0, 0)`` without steps."""
+    if len(steps) == 0:
+        return math.nan, math.nan, 0, 0
+    steps = np.asarray(steps, dtype=float)
+    t_med = statistics.median(steps[:, 0].tolist())
+    a_med = statistics.median(steps[:, 1].tolist())
+    t_agree = int(np.count_nonzero(np.abs(steps[:, 0] - t_med) <= tolerance))
+    a_agree = int(np.count_nonzero(np.abs(steps[:, 1] - a_med) <= tolerance * steps[:, 2]))
+    return t_med, a_med, t_agree, a_agree
+
+
 class SwapTiming:
     """Follows the IMU's step at each leg swap, cycle after cycle, and says how to correct the angle.
 
@@ -244,11 +258,7 @@ class SwapTiming:
     def _decide(self, omega: float) -> float | None:
         if self._fresh and len(self.steps) >= self.min_steps:
             self._fresh = False
-            steps = np.asarray(self.steps)
-            t_med = statistics.median(steps[:, 0].tolist())
-            a_med = statistics.median(steps[:, 1].tolist())
-            t_agree = int(np.count_nonzero(np.abs(steps[:, 0] - t_med) <= self.tolerance))
-            a_agree = int(np.count_nonzero(np.abs(steps[:, 1] - a_med) <= self.tolerance * steps[:, 2]))
+            t_med, a_med, t_agree, a_agree = agreement(self.steps, self.tolerance)
             if max(t_agree, a_agree) >= self.min_steps:
                 self.model, self.offset = ("angle", a_med) if a_agree >= t_agree else ("time", t_med)
         if self.model is None:
@@ -342,13 +352,12 @@ def swap_summary(t, az, theta, n_legs: int) -> SwapSummary:
     if n_legs < 1:
         raise ValueError(f"n_legs must be >= 1, got {n_legs}")
     ok = np.isfinite(t) & np.isfinite(az) & np.isfinite(theta)
-    t, az, theta = t[ok], az[ok], theta[ok]
-    if theta.size and np.any(np.diff(theta) < -math.pi):
-        theta = np.unwrap(theta)
-    theta = dequantize_log(t, theta)
+    t, az = t[ok], az[ok]
+    theta = dequantize_log(t, theta[ok])
     half = math.pi / n_legs
     k = np.floor((theta + half) / (2 * half)).astype(np.int64)
-    timing = SwapTiming(n_legs, tolerance=math.inf, min_steps=1, memory=max(1, int(k.size)))  # never corrects
+    # every step kept; an infinite tolerance never calls for a correction, so the angle is read as logged
+    timing = SwapTiming(n_legs, tolerance=math.inf, min_steps=1, memory=max(1, int(k.size)))
     starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
     ends = np.r_[starts[1:], k.size]
     for a, b in zip(starts, ends):
@@ -361,14 +370,6 @@ def swap_summary(t, az, theta, n_legs: int) -> SwapSummary:
             timing.forget_tail()
             continue
         timing.add_cycle(int(k[a]), t[a:b], az[a:b], phase, omega)
-    steps = np.asarray(timing.steps, dtype=float).reshape(-1, 3)
-    if steps.shape[0]:
-        t_med, a_med = float(np.median(steps[:, 0])), float(np.median(steps[:, 1]))
-        agree_t = int(np.count_nonzero(np.abs(steps[:, 0] - t_med) <= TOLERANCE))
-        agree_a = int(np.count_nonzero(np.abs(steps[:, 1] - a_med) <= TOLERANCE * steps[:, 2]))
-    else:
-        t_med = a_med = math.nan
-        agree_t = agree_a = 0
-    settle = list(timing.settle)
-    return SwapSummary(timing.looked, timing.measured, t_med, a_med, agree_t, agree_a,
-                       statistics.median(settle) if settle else math.nan, len(settle))
+    t_med, a_med, agree_t, agree_a = agreement(timing.steps, TOLERANCE)
+    return SwapSummary(timing.looked, timing.measured, t_med, a_med, agree_t, agree_a, timing.settling,
+                       len(timing.settle))

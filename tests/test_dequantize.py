@@ -215,3 +215,18 @@ def test_a_fine_or_short_log_is_returned_as_it_is_and_mismatched_arrays_are_refu
     np.testing.assert_array_equal(dequantize_log(t[:5], _counts(fine[:5], 150)), _counts(fine[:5], 150))
     with pytest.raises(ValueError, match="same length"):
         dequantize_log(t, fine[:-1])
+
+
+def test_a_whole_log_angle_is_unwrapped_around_its_lost_samples_and_then_interpolated():
+    t, fine = _angle(seconds=4.0)
+    lost = fine.copy()
+    lost[[100, 2000]] = np.nan
+    wrapped = np.mod(lost + math.pi, 2 * math.pi) - math.pi
+    out = dequantize_log(t, wrapped)
+    ok = np.isfinite(lost)
+    np.testing.assert_allclose(out[ok], lost[ok] - (lost[0] - out[0]), atol=1e-12)  # unwrapped, as one
+    assert np.isnan(out[[100, 2000]]).all()  # the lost samples keep their place
+    coarse = np.mod(_counts(lost, 150) + math.pi, 2 * math.pi) - math.pi  # wrapped whole counts
+    q = 2 * math.pi / 150
+    err = dequantize_log(t, coarse) - (lost - (lost[0] - out[0]))
+    assert np.nanmax(np.abs(err)) < 0.1 * q

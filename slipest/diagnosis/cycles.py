@@ -175,9 +175,7 @@ def cut_cycles(t, az, theta, slip, n_legs: int, grid: Grid | None = None, log_in
     if not np.isfinite(slip).any():
         raise ValueError(f"the reference slip is missing: the 'slip' column holds no value ({slip.size} rows, all "
                          f"NaN). {NEEDS_SLIP}")
-    if np.any(np.diff(theta) < -math.pi):
-        theta = np.unwrap(theta)  # a wrapped angle ([-pi, pi) or [0, 2 pi)) unwrapped; 0 stays at a midstance
-    theta = dequantize_log(t, theta)
+    theta = dequantize_log(t, theta)  # unwrapped (0 stays at a midstance) and interpolated between whole counts
     k = np.floor((theta + half) / (2 * half)).astype(np.int64)
     phase = theta - 2 * half * k
     noise = sample_noise(az)
