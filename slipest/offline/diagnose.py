@@ -33,7 +33,8 @@ __all__ = ["DIAGNOSE_COLUMNS", "DiagnoseOptions", "diagnose_logs", "diagnose_row
 #: logged slip [-], the nominal model's fitted soil (kS [N/m], phiS, dphi [rad], kappa [-]), the held-out
 #: gap before and after the best effect [mg], the verdict (an effect, ``none``, ``unexplained``, or
 #: ``error``), the IMU's timing against the encoder at the leg swaps (median offset [ms], steps found,
-#: settling ratio [-]: :class:`slipest.swap_timing.SwapSummary`), the error, the seconds it took.
+#: settling ratio [-], NaN when that timing is off: :class:`slipest.swap_timing.SwapSummary`), the error, the seconds
+#: it took.
 DIAGNOSE_COLUMNS = ("log", "cycles", "fitted", "held_out", "mean_slip", "kS", "phiS", "dphi", "kappa",
                     "gap_nominal_mg", "gap_after_mg", "verdict", "swap_offset_ms", "swap_steps", "settling", "error",
                     "seconds")
@@ -142,5 +143,7 @@ def diagnose_rows(log, options: DiagnoseOptions = DiagnoseOptions()) -> list[dic
                seconds=time.monotonic() - t0)
     if d.swaps:
         sw = d.swaps[0][1]
-        row.update(swap_offset_ms=sw.offset_s * 1000, swap_steps=sw.measured, settling=sw.settling)
+        # the settling is read at the encoder's swap: not reported when the timing is off
+        row.update(swap_offset_ms=sw.offset_s * 1000, swap_steps=sw.measured,
+                   settling=math.nan if sw.off else sw.settling)
     return [row]
