@@ -554,3 +554,21 @@ def test_a_coarse_encoder_is_interpolated_between_its_count_changes():
     # the cycles of the coarse log are nearly those of the fine one (the diagnosis found 15-40 mg gaps before)
     cq, cs = cut_cycles(s.t, s.az, coarse, s.slip, 4), _cycles(s)
     assert np.sqrt(np.mean((cq.y - cs.y) ** 2)) / G < 0.003
+
+
+def test_the_per_log_row_reads_an_encoder_offset_and_leaves_its_settling_out(tmp_path):
+    from dataclasses import replace
+
+    from slipest.offline.diagnose import DiagnoseOptions, diagnose_rows
+    from slipest.swap_timing import swap_summary
+
+    s = _log(np.repeat([0.1, 0.25, 0.4], 4))
+    ahead = replace(s, theta=s.theta + 0.05)  # an encoder zero 0.05 rad off: its swaps come early
+    sw = swap_summary(ahead.t, ahead.az, ahead.theta, 4)
+    assert sw.off and sw.settled >= 5 and math.isfinite(sw.settling)  # a settling is read, at the wrong time
+    log = tmp_path / "ahead.csv"
+    _write_log(log, ahead, {"nL": "4"})
+    row = diagnose_rows(log, DiagnoseOptions(effects=("imu_saturation",), quick=True))[0]
+    assert row["error"] == "" and row["swap_steps"] >= 5
+    assert row["swap_offset_ms"] == pytest.approx(1000 * sw.offset_s) and row["swap_offset_ms"] > 12.0
+    assert math.isnan(row["settling"])  # read at the encoder's swap, which is off: not reported
