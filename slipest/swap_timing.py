@@ -283,8 +283,9 @@ class SwapSummary:
     NaN without steps; offset_rad: the same in leg angle [rad] (each step's offset times its cycle's leg
     speed); agree_time, agree_angle: steps within :data:`TOLERANCE` of the median offset in time, and in
     angle (at their leg speed) [-]. settling: median settling ratio of the swaps [-] (:data:`SETTLE_SPAN`;
-    0 for an IMU that follows the hub), NaN without any; settled: how many swaps gave one (read at the
-    encoder's swap, so meaningful only when the timing is not :attr:`off`).
+    0 for an IMU that follows the hub), NaN without any; settled: how many swaps gave one. The settling
+    is read at the encoder's swap, so it means something only when the timing is not :attr:`off`
+    (:attr:`settling_read`).
     """
 
     looked: int
@@ -302,10 +303,15 @@ class SwapSummary:
         return self.measured >= MIN_STEPS and abs(self.offset_s) > TOLERANCE
 
     @property
+    def settling_read(self) -> float:
+        """:attr:`settling`, or NaN when the timing is :attr:`off` (it is then read at the wrong time) [-]."""
+        return math.nan if self.off else self.settling
+
+    @property
     def sluggish(self) -> bool:
-        """At least :data:`MIN_STEPS` settling ratios, their median above :data:`SLUGGISH`, and the timing not
-        :attr:`off` (the settling is read at the encoder's swap: off, it is read at the wrong time)."""
-        return not self.off and self.settled >= MIN_STEPS and self.settling > SLUGGISH
+        """At least :data:`MIN_STEPS` settling ratios and their median (:attr:`settling_read`) above
+        :data:`SLUGGISH`."""
+        return self.settled >= MIN_STEPS and self.settling_read > SLUGGISH
 
     def explanation(self) -> str:
         """One sentence: the offset and what it looks like, and how the IMU settles."""

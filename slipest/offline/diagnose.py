@@ -143,7 +143,5 @@ def diagnose_rows(log, options: DiagnoseOptions = DiagnoseOptions()) -> list[dic
                seconds=time.monotonic() - t0)
     if d.swaps:
         sw = d.swaps[0][1]
-        # the settling is read at the encoder's swap: not reported when the timing is off
-        row.update(swap_offset_ms=sw.offset_s * 1000, swap_steps=sw.measured,
-                   settling=math.nan if sw.off else sw.settling)
+        row.update(swap_offset_ms=sw.offset_s * 1000, swap_steps=sw.measured, settling=sw.settling_read)
     return [row]
