@@ -9,9 +9,11 @@ from slipest.inverse.surrogate import (
     FORMAT_VERSION,
     FeatureSurrogate,
     InverseModelError,
+    check_patches,
     fit_node,
     load_inverse_model,
     node_terms,
+    patch_weights,
     save_inverse_model,
     whitener,
 )
@@ -39,22 +41,35 @@ def _draw(n, rng):
     return rng.uniform(LO, HI, (n, 5))
 
 
-@pytest.fixture(scope="module")
-def fitted():
+#: Two slip patches overlapping over 0.2-0.3.
+PATCHES = np.array([[0.0, 0.3], [0.2, 0.5]])
+
+
+def _fit(patches, n=4000):
     rng = np.random.default_rng(3)
     terms = node_terms(SCHEDULE)
     coef, cov = [], []
     for node in range(NODES.size):
-        x5 = _draw(4000, rng)
+        x5 = _draw(n, rng)
         # residual noise with a standard deviation growing with the noise input: 1e-3 * sqrt(1 + (s / 0.01)^2)
         sd = 1e-3 * np.sqrt(1.0 + (x5[:, 4] / 0.01) ** 2)
-        y = _truth(x5, node) + rng.normal(0, 1, (4000, 3)) * sd[:, None]
-        c, r = fit_node(x5, y, terms, CENTER, HALF)
+        y = _truth(x5, node) + rng.normal(0, 1, (n, 3)) * sd[:, None]
+        c, r = fit_node(x5, y, terms, CENTER, HALF, patches)
         coef.append(c)
         cov.append(r)
     ranges = np.vstack([np.column_stack([LO, HI]), [NODES[0], NODES[-1]]])
     return FeatureSurrogate(FEATS, NODES, CENTER, HALF, ranges, 0.1, terms, np.stack(coef), np.stack(cov),
-                            {"omega": [0.45, 0.85]}, {"training": {"n_legs": 4}})
+                            {"omega": [0.45, 0.85]}, {"training": {"n_legs": 4}}, patches)
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    return _fit(None)
+
+
+@pytest.fixture(scope="module")
+def patched():
+    return _fit(PATCHES, n=8000)
 
 
 def _x6(x5, omega):
@@ -84,31 +99,103 @@ def test_between_nodes_linear_in_log_speed(fitted):
     assert fitted.covered_range("omega") == (0.45, 0.85) and fitted.covered_range("kS") == (500.0, 1500.0)
 
 
-def test_grid_evaluation_equals_the_pointwise_mean(fitted):
-    nodes, ks, ps, dp = np.array([0.0, 0.2, 0.45]), np.array([600.0, 1400.0]), np.array([0.3, 0.6]), np.array([0.05, 0.3])
+@pytest.mark.parametrize("which", ["fitted", "patched"])
+def test_grid_evaluation_equals_the_pointwise_mean(which, request):
+    """The grid path (one variable at a time, per patch) and the pointwise mean are one model: equal everywhere,
+    on slips inside one patch, in the overlap and beyond the last."""
+    model = request.getfixturevalue(which)
+    nodes = np.array([0.0, 0.2, 0.25, 0.29, 0.45, 0.52])
+    ks, ps, dp = np.array([600.0, 1400.0]), np.array([0.3, 0.6]), np.array([0.05, 0.3])
     omega, s = 0.7, 0.013
-    grid = fitted.mean_on_grid(nodes, ks, ps, dp, omega, s)  # (kS, phiS, dphi, slip, features)
-    assert grid.shape == (2, 2, 2, 3, 3)
+    grid = model.mean_on_grid(nodes, ks, ps, dp, omega, s)  # (kS, phiS, dphi, slip, features)
+    assert grid.shape == (2, 2, 2, nodes.size, 3)
     for a, kS in enumerate(ks):
         for b, phiS in enumerate(ps):
             for c, dphi in enumerate(dp):
-                x = np.column_stack([nodes, np.full(3, kS), np.full(3, phiS), np.full(3, dphi), np.full(3, omega),
-                                     np.full(3, s)])
-                assert np.allclose(grid[a, b, c], fitted.mean(x), rtol=1e-9, atol=1e-9)
+                x = np.column_stack([nodes] + [np.full(nodes.size, v) for v in (kS, phiS, dphi, omega, s)])
+                assert np.allclose(grid[a, b, c], model.mean(x), rtol=1e-9, atol=1e-9)
 
 
-def test_file_round_trip_and_other_versions_refused(fitted, tmp_path):
+def test_patch_weights_sum_to_one_and_blend_smoothly_across_each_overlap():
+    p = np.array([[0.0, 0.3], [0.2, 0.4], [0.35, 0.55]])
+    s = np.linspace(-0.1, 0.7, 801)
+    w = patch_weights(s, p)
+    assert w.shape == (s.size, 3) and np.allclose(w.sum(axis=1), 1.0) and (w >= 0).all()
+    assert np.array_equal(w[s < 0.2], np.tile([1.0, 0.0, 0.0], ((s < 0.2).sum(), 1)))  # below: the first alone
+    assert np.all(w[s > 0.4 + 1e-12, 2] == 1.0)  # beyond the last overlap: the last alone
+    mid = np.argmin(np.abs(s - 0.25))
+    assert np.allclose(w[mid], [0.5, 0.5, 0.0])  # halfway across an overlap
+    # no jump anywhere: at most the smoothstep's steepest slope, 1.5 / (the narrowest overlap, 0.05), times 0.001
+    assert np.abs(np.diff(w, axis=0)).max() <= 1.5 / 0.05 * 0.001 + 1e-12
+
+
+@pytest.mark.parametrize("patches, message", [
+    ([[0.0, 0.3], [0.3, 0.5]], "each overlapping the next"),  # touching, no overlap
+    ([[0.2, 0.5], [0.0, 0.3]], "must increase"),
+    ([[0.0, 0.4], [0.1, 0.45], [0.3, 0.5]], "only it"),  # the first overlap reaches into the second
+    ([[0.3, 0.1]], "lo < hi"),
+    ([0.0, 0.5], "finite slip ranges"),
+])
+def test_bad_slip_patches_are_refused_by_name(patches, message):
+    with pytest.raises(ValueError, match=message):
+        check_patches(patches)
+
+
+def test_patched_fit_recovers_a_known_polynomial_on_each_side_and_across_the_overlap(patched):
+    """A polynomial within the schedule is one in each patch's own slip normalisation too: the patched fit
+    recovers it everywhere, blend included."""
+    x5 = _draw(2000, np.random.default_rng(8))
+    for node, omega in enumerate(NODES):
+        err = patched.mean(_x6(x5, omega)) - _truth(x5, node)
+        assert np.sqrt(np.mean(err**2)) < 4e-4
+        band = (x5[:, 0] > 0.2) & (x5[:, 0] < 0.3)
+        assert band.sum() > 200 and np.sqrt(np.mean(err[band] ** 2)) < 4e-4
+
+
+def test_patched_fit_follows_a_kink_in_slip_that_one_polynomial_smooths():
+    """Where the features change their law with slip (a kink at 0.25, inside the overlap: a linear feature
+    that turns), two patches of low degree follow each side better than one polynomial of the same degree."""
+    rng = np.random.default_rng(9)
+    x5 = _draw(20000, rng)
+    y = np.column_stack([np.abs(x5[:, 0] - 0.25) + 0.01 * x5[:, 2], x5[:, 1] / 1000, x5[:, 3]])
+    terms = node_terms({0: 3})
+    test = _draw(3000, np.random.default_rng(10))
+    truth = np.column_stack([np.abs(test[:, 0] - 0.25) + 0.01 * test[:, 2], test[:, 1] / 1000, test[:, 3]])
+    errs = {}
+    for name, patches in (("one", None), ("two", PATCHES)):
+        coef, _ = fit_node(x5, y, terms, CENTER, HALF, patches)
+        m = FeatureSurrogate(FEATS, NODES[:1], CENTER, HALF, np.vstack([np.column_stack([LO, HI]), [0.4, 0.4]]), 0.1,
+                             terms, coef[None], np.zeros((1, 2, 3, 3)) + np.eye(3), {}, {}, patches)
+        errs[name] = np.sqrt(np.mean((m.mean(_x6(test, 0.4))[:, 0] - truth[:, 0]) ** 2))
+    assert errs["two"] < 0.6 * errs["one"], errs
+
+
+def test_a_format_3_file_is_read_as_one_patch(fitted, tmp_path):
+    path = save_inverse_model(fitted, tmp_path / "m.npz")
+    with np.load(path) as z:
+        doc = {k: z[k] for k in z.files if k != "patches"}
+    doc["format_version"] = np.array(3)
+    doc["coef"] = doc["coef"][:, 0]  # (M, T, d): one polynomial per node
+    np.savez(tmp_path / "v3.npz", **doc)
+    old = load_inverse_model(tmp_path / "v3.npz")
+    x = _x6(_draw(20, np.random.default_rng(11)), 0.66)
+    assert old.patches.shape == (1, 2) and np.array_equal(old.mean(x), fitted.mean(x))
+
+
+@pytest.mark.parametrize("which", ["fitted", "patched"])
+def test_file_round_trip_and_other_versions_refused(which, request, tmp_path):
+    fitted = request.getfixturevalue(which)
     path = save_inverse_model(fitted, tmp_path / "m.npz")
     again = load_inverse_model(path)
-    x = _x6(_draw(5, np.random.default_rng(6)), 0.77)
-    assert np.array_equal(again.mean(x), fitted.mean(x))
+    x = _x6(_draw(50, np.random.default_rng(6)), 0.77)
+    assert np.array_equal(again.mean(x), fitted.mean(x)) and np.array_equal(again.patches, fitted.patches)
     assert again.covered == fitted.covered and again.meta == fitted.meta
     with np.load(path) as z:
         doc = {k: z[k] for k in z.files}
     doc["format_version"] = np.array(2)
     old = tmp_path / "old.npz"
     np.savez(old, **doc)
-    with pytest.raises(InverseModelError, match=rf"old\.npz: format_version 2 is not supported.*reads {FORMAT_VERSION}.*train_inverse"):
+    with pytest.raises(InverseModelError, match=rf"old\.npz: format_version 2 is not supported.*reads 3, {FORMAT_VERSION}.*train_inverse"):
         load_inverse_model(old)
 
 
@@ -127,7 +214,8 @@ def test_unreadable_or_missing_model_file_is_a_clear_error(tmp_path):
     ("terms", np.array([[0, 0, 0, 99]]), "terms must be"),
     ("halfwidth", np.array([1.0, 0.0, 1.0, 1.0, 1.0]), "halfwidth must be"),
     ("node_omegas", np.array([0.9, 0.6, 0.4]), "node_omegas must be positive and increasing"),
-    ("coef", np.zeros((3, 2, 3)), "shapes do not agree"),
+    ("coef", np.zeros((3, 1, 2, 3)), "shapes do not agree"),
+    ("patches", np.array([[0.0, 0.3], [0.35, 0.5]]), "slip patches: .*each overlapping the next"),
     ("features", np.array(["rms", "no_such_feature", "onset"]), "unknown feature"),
     ("meta", np.array("{not json"), "malformed inverse model"),
 ])
@@ -146,7 +234,7 @@ def test_shipped_model_is_the_current_format_and_covers_the_envelope():
     m = load_inverse_model()
     lo, hi = m.covered_range("omega")
     assert m.node_omegas[0] <= lo and hi <= m.node_omegas[-1] and lo <= 0.3 and hi >= 1.2
-    assert m.coef.shape == (m.node_omegas.size, m.terms.shape[0], len(m.features))
+    assert m.coef.shape == (m.node_omegas.size, m.patches.shape[0], m.terms.shape[0], len(m.features))
     assert m.n_legs == 4 and np.isfinite(m.meta["fit_level"]) and m.meta["fit_level"] > 0
 
 

@@ -7,7 +7,8 @@ uniformly over the envelope of :mod:`slipest.inverse.simdata` (slip 0-0.55,
 kS 400-1700 N/m, phiS 0.1-0.9 rad, dphi 0-0.4 rad with phiD >= 0.08 rad; IMU
 rate log-uniform 200-2000 Hz, noise uniform 0-0.03 g), simulates each
 stance, samples and measures it (:mod:`slipest.features`) and fits the
-node's polynomial (:func:`slipest.inverse.surrogate.fit_node`). It then
+node's polynomials, one per slip patch (``--patches``;
+:func:`slipest.inverse.surrogate.fit_node`). It then
 checks the model on a held-out draw at speeds *between* the nodes: one-cycle
 slip with the soil known and unknown (RMSE, 95 % coverage), and the level of
 the best candidate's squared whitened distance on clean cycles
@@ -18,6 +19,7 @@ benchmarks draw with other seeds; nothing here looks at them.
     python tools/train_inverse.py                      # ~40 min on 2 cores (simulation ~30, fit ~6, checks ~3)
     python tools/train_inverse.py --n-node 20000 --nodes 4 --schedule small   # quick, for trying things
     python tools/train_inverse.py --rows rows.npz      # keep (or reuse) the simulated rows
+    python tools/train_inverse.py --n-node 200000 --patches 0:0.33,0.22:0.55 --out patched.npz   # research, ~25 min
 """
 
 from __future__ import annotations
@@ -35,18 +37,30 @@ from slipest import __version__
 from slipest.features import INDEX
 from slipest.inverse.feature_inverse import FeatureInverse
 from slipest.inverse.simdata import ENVELOPE, NOISE_RANGE, PHID_MIN, RATE_RANGE, draw_envelope, draw_imu, simulate_features
-from slipest.inverse.surrogate import VARIABLES, FeatureSurrogate, MODEL_FEATURES, fit_node, node_terms, save_inverse_model
+from slipest.inverse.surrogate import (VARIABLES, FeatureSurrogate, MODEL_FEATURES, check_patches, fit_node, node_terms,
+                                       save_inverse_model)
 from slipest.model.params import StickSlipParams
 
 DEFAULT_OUT = Path(__file__).resolve().parents[1] / "slipest" / "data" / "inverse_model.npz"
 
 #: Term schedules: {noise degree: total degree in (slip, kS, phiS, dphi)}.
 SCHEDULES = {"default": {0: 14, 1: 8, 2: 6}, "small": {0: 8, 1: 4}, "tiny": {0: 3, 1: 1}}
+#: Slip patches of the shipped model: one, over the whole training range. ``--patches 0:0.33,0.22:0.55`` fits two
+#: overlapping ones (research: better with the soil known, not with it unknown; docs/estimator.md, "Slip patches").
+PATCHES = "0:0.55"
 #: Speeds of the first and last node [rad/s].
 NODE_SPAN = (0.27, 1.29)
 #: What the estimator promises (the training envelope is wider).
 COVERED = {"slip": [0.0, 0.5], "kS": [500.0, 1500.0], "phiS": [0.1, 0.8], "dphi": [0.0, 0.35], "omega": [0.3, 1.2],
            "phid_min": 0.1}
+
+
+def patches_arg(text: str) -> np.ndarray:
+    """``LO:HI,LO:HI,...``: the slip patches (:func:`slipest.inverse.surrogate.check_patches`)."""
+    try:
+        return check_patches([[float(v) for v in item.split(":")] for item in text.split(",")])
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"--patches {text!r}: {exc} (expected LO:HI,LO:HI like {PATCHES})") from None
 
 
 def simulate(x, rng: np.random.Generator, base: StickSlipParams, bar) -> tuple[np.ndarray, np.ndarray]:
@@ -106,6 +120,9 @@ def main(argv=None) -> int:
     ap.add_argument("--n-node", type=int, default=100000, help="training stances per node (default 100000)")
     ap.add_argument("--n-val", type=int, default=4000, help="held-out stances between the nodes (default 4000)")
     ap.add_argument("--schedule", choices=sorted(SCHEDULES), default="default", help="term schedule (default: default)")
+    ap.add_argument("--patches", type=patches_arg, default=patches_arg(PATCHES),
+                    help=f"slip patches LO:HI,... each with its own polynomials, blended across the overlaps "
+                         f"(default {PATCHES}: one; research: 0:0.33,0.22:0.55)")
     ap.add_argument("--n-check", type=int, default=800,
                     help="held-out stances the one-cycle figures and the misfit level use (default 800; each needs "
                     "a grid table at its speed and noise, about 0.1 s)")
@@ -158,9 +175,11 @@ def main(argv=None) -> int:
     terms = node_terms(SCHEDULES[args.schedule])
     cols = [INDEX[f] for f in MODEL_FEATURES]
     coef, cov_coef = [], []
-    with tqdm(total=sum(map(len, x_nodes)), desc="fit", unit="row", file=sys.stderr) as bar:
+    patch_rows = sum(int(np.sum((xn[:, 0] >= lo) & (xn[:, 0] <= hi))) for xn in x_nodes for lo, hi in args.patches)
+    with tqdm(total=patch_rows, desc="fit", unit="row", file=sys.stderr) as bar:
         for xn, fn in zip(x_nodes, f_nodes):
-            c, r = fit_node(xn[:, [0, 1, 2, 3, 5]], fn[:, cols], terms, center, halfwidth, progress=bar.update)
+            c, r = fit_node(xn[:, [0, 1, 2, 3, 5]], fn[:, cols], terms, center, halfwidth, args.patches,
+                            progress=bar.update)
             coef.append(c)
             cov_coef.append(r)
     t_fit = time.time() - t0 - t_sim
@@ -170,7 +189,7 @@ def main(argv=None) -> int:
         "slipest_version": __version__,
         "training": {"n_per_node": int(len(x_nodes[0])), "n_val": int(len(x_va)), "seed": args.seed,
                      "schedule": {str(k): v for k, v in SCHEDULES[args.schedule].items()},
-                     "n_terms": int(terms.shape[0]), "envelope": ENVELOPE, "phid_min": PHID_MIN,
+                     "n_terms": int(terms.shape[0]), "patches": args.patches.tolist(), "envelope": ENVELOPE, "phid_min": PHID_MIN,
                      "rate_hz": list(RATE_RANGE), "noise_g": list(NOISE_RANGE),
                      "model": f"StickSlipParams defaults but nL {args.legs}", "n_legs": args.legs,
                      "simulate_s": round(t_sim), "fit_s": round(t_fit)},
@@ -180,7 +199,7 @@ def main(argv=None) -> int:
 
     def build(meta):
         return FeatureSurrogate(MODEL_FEATURES, node_omegas, center, halfwidth, ranges, PHID_MIN, terms,
-                                np.stack(coef), np.stack(cov_coef), covered, meta)
+                                np.stack(coef), np.stack(cov_coef), covered, meta, args.patches)
 
     model = build(meta)
     save_inverse_model(model, args.out)  # (again below with the held-out figures): not lost if checking fails

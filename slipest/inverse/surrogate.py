@@ -13,7 +13,10 @@ speeds follows poorly, so the model is a set of **speed nodes** ``omega_i``
 (geometric spacing): at each, ``mu_i`` is a polynomial per feature in the
 normalised ``(slip, kS, phiS, dphi, noise_smooth)`` in the tensor Legendre
 basis, total degree :func:`node_terms` (high in the soil and slip, low in
-the noise), and ``R_i(s) = A_i + s^2 B_i`` the covariance of the residuals
+the noise), one polynomial per **slip patch** (``patches``: overlapping slip
+ranges, blended smoothly across each overlap by :func:`patch_weights`; the
+shipped model has one, docs/estimator.md says why), and
+``R_i(s) = A_i + s^2 B_i`` the covariance of the residuals
 (what the IMU noise leaves on the features and what a smooth law cannot
 follow: the oscillation's phase at the end of the stance jumps about with
 small parameter changes, so amplitude features scatter by about 30 % around
@@ -44,8 +47,10 @@ import numpy as np
 
 from slipest.features import FEATURE_NAMES
 
-#: Version of the inverse model file format (3: speed nodes and a noise input; 1 and 2 are refused).
-FORMAT_VERSION = 3
+#: Version of the inverse model file format (4: slip patches; 3, one patch, is still read; 1 and 2 are refused).
+FORMAT_VERSION = 4
+#: Versions :meth:`FeatureSurrogate.load` reads.
+READ_VERSIONS = (3, 4)
 #: Variables of a node's polynomial, in order (the leg speed selects the nodes).
 VARIABLES = ("slip", "kS", "phiS", "dphi", "noise_smooth")
 #: Features the shipped model uses: the smoothed, noise-referred ones (``delta_a``, the raw max - min, grows
@@ -107,30 +112,85 @@ def legendre_on_grid(terms4: np.ndarray, coef: np.ndarray, center4, halfwidth4, 
     return np.ascontiguousarray(x.transpose(3, 2, 1, 4, 0))
 
 
-def fit_node(x5, y, terms: np.ndarray, center, halfwidth, progress=None) -> tuple[np.ndarray, np.ndarray]:
-    """One speed node's least-squares fit: ``(coef (T, d), cov_coef (2, d, d))`` from points ``x5`` ``(n, 5)``
+def check_patches(patches) -> np.ndarray:
+    """``patches`` as a ``(P, 2)`` float array of slip ranges ``[lo, hi]`` [-], or ``ValueError``: each range
+    non-empty, the ranges increasing, each overlapping the next (``lo[p + 1] < hi[p]``) and no overlap reaching
+    into the next one (``hi[p] <= lo[p + 2]``), so that :func:`patch_weights` sum to one."""
+    p = np.asarray(patches, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 2 or p.shape[0] < 1 or not np.all(np.isfinite(p)):
+        raise ValueError(f"patches must be (P >= 1, 2) finite slip ranges, got {p.tolist()}")
+    if not np.all(p[:, 1] > p[:, 0]):
+        raise ValueError(f"each slip patch needs lo < hi, got {p.tolist()}")
+    if not (np.all(np.diff(p[:, 0]) > 0) and np.all(p[1:, 0] < p[:-1, 1]) and np.all(p[:-2, 1] <= p[2:, 0])):
+        raise ValueError(f"slip patches must increase, each overlapping the next and only it, got {p.tolist()}")
+    return p
+
+
+def patch_weights(slip, patches) -> np.ndarray:
+    """Blending weights ``(n, P)`` of the slip patches (``(P, 2)``, :func:`check_patches`) at slips ``(n,)`` [-]:
+    1 where only one patch covers the slip (below the first and above the last patch too), a smoothstep
+    (``3t^2 - 2t^3``, continuous with its slope) across each overlap; they sum to 1."""
+    s = np.asarray(slip, dtype=float).reshape(-1)
+    p = np.asarray(patches, dtype=float)
+    w = np.ones((s.size, p.shape[0]))
+    for j in range(1, p.shape[0]):  # overlap of patches j - 1 and j: [lo_j, hi_(j-1)]
+        t = np.clip((s - p[j, 0]) / (p[j - 1, 1] - p[j, 0]), 0.0, 1.0)
+        up = t * t * (3.0 - 2.0 * t)
+        w[:, j] *= up
+        w[:, j - 1] *= 1.0 - up
+    return w
+
+
+def patch_norm(center, halfwidth, patch) -> tuple[np.ndarray, np.ndarray]:
+    """The normalisation of one slip patch ``[lo, hi]``: ``center``, ``halfwidth`` with the slip's replaced."""
+    c = np.array(center, dtype=float)
+    h = np.array(halfwidth, dtype=float)
+    c[0], h[0] = 0.5 * (patch[0] + patch[1]), 0.5 * (patch[1] - patch[0])
+    return c, h
+
+
+def fit_node(x5, y, terms: np.ndarray, center, halfwidth, patches=None,
+             progress=None) -> tuple[np.ndarray, np.ndarray]:
+    """One speed node's least-squares fit: ``(coef (P, T, d), cov_coef (2, d, d))`` from points ``x5`` ``(n, 5)``
     (order of :data:`VARIABLES`, SI) and modelled features ``y`` ``(n, d)`` (rows with non-finite values are
-    dropped). The residual covariance is ``A + s^2 B`` by least squares on the residuals' outer products."""
+    dropped). Each slip patch (``patches`` ``(P, 2)``; default one, the normalisation's slip range) is fitted on
+    the rows within its range; the residual covariance, of the blended mean, is ``A + s^2 B`` by least squares on
+    the residuals' outer products."""
     x5 = np.asarray(x5, dtype=float)
     y = np.asarray(y, dtype=float)
+    if patches is None:
+        patches = [[center[0] - halfwidth[0], center[0] + halfwidth[0]]]
+    patches = check_patches(patches)
     ok = np.all(np.isfinite(y), axis=1) & np.all(np.isfinite(x5), axis=1)
-    if ok.sum() < 10 * len(terms):
-        raise ValueError(f"too few training rows ({ok.sum()}) for {len(terms)} terms")
     x5, y = x5[ok], y[ok]
-    u = (x5 - center) / halfwidth
-    # normal equations accumulated in blocks; the Legendre basis keeps them well conditioned, a tiny ridge
-    # guards the rank
-    a = np.zeros((len(terms), len(terms)))
-    b = np.zeros((len(terms), y.shape[1]))
-    for i in range(0, u.shape[0], _CHUNK):
-        dm = legendre_design(u[i : i + _CHUNK], terms)
-        a += dm.T @ dm
-        b += dm.T @ y[i : i + _CHUNK]
-        if progress:
-            progress(dm.shape[0])
-    coef = np.linalg.solve(a + 1e-8 * np.trace(a) / len(terms) * np.eye(len(terms)), b)
-    resid = np.concatenate([y[i : i + _CHUNK] - legendre_design(u[i : i + _CHUNK], terms) @ coef
-                            for i in range(0, u.shape[0], _CHUNK)])
+    weights = patch_weights(x5[:, 0], patches)
+    coef = np.empty((patches.shape[0], len(terms), y.shape[1]))
+    fitted = np.zeros_like(y)
+    for j, patch in enumerate(patches):
+        inside = (x5[:, 0] >= patch[0]) & (x5[:, 0] <= patch[1]) if patches.shape[0] > 1 else np.ones(len(x5), bool)
+        if inside.sum() < 10 * len(terms):
+            raise ValueError(f"too few training rows ({inside.sum()}) for {len(terms)} terms in slip patch "
+                             f"{patch.tolist()}")
+        c, h = patch_norm(center, halfwidth, patch)
+        u = (x5[inside] - c) / h
+        yp = y[inside]
+        # normal equations accumulated in blocks; the Legendre basis keeps them well conditioned, a tiny ridge
+        # guards the rank
+        a = np.zeros((len(terms), len(terms)))
+        b = np.zeros((len(terms), y.shape[1]))
+        for i in range(0, u.shape[0], _CHUNK):
+            dm = legendre_design(u[i : i + _CHUNK], terms)
+            a += dm.T @ dm
+            b += dm.T @ yp[i : i + _CHUNK]
+            if progress:
+                progress(dm.shape[0])
+        coef[j] = np.linalg.solve(a + 1e-8 * np.trace(a) / len(terms) * np.eye(len(terms)), b)
+        used = np.flatnonzero(weights[:, j] > 0)
+        u = (x5[used] - c) / h
+        for i in range(0, used.size, _CHUNK):
+            rows = used[i : i + _CHUNK]
+            fitted[rows] += weights[rows, j, None] * (legendre_design(u[i : i + _CHUNK], terms) @ coef[j])
+    resid = y - fitted
     s2 = x5[:, 4] ** 2
     basis = np.column_stack([np.ones_like(s2), s2])
     outer = np.einsum("nb,ni,nj->bij", basis, resid, resid)
@@ -148,10 +208,13 @@ class FeatureSurrogate:
     of a node's variables (SI). ranges: ``(6, 2)`` [lo, hi] of the training
     draw (the :data:`VARIABLES`, then omega); phid_min [rad]: its smallest
     ``phiS - dphi``. terms: ``(T, 5)`` Legendre degrees per variable;
-    coef: ``(M, T, d)``; cov_coef: ``(M, 2, d, d)`` (``A_i``, ``B_i``;
+    coef: ``(M, P, T, d)``, one polynomial per node and slip patch, each
+    patch normalising the slip over its own range (:func:`patch_norm`);
+    cov_coef: ``(M, 2, d, d)`` (``A_i``, ``B_i``;
     feature units squared). covered: what the estimator promises, ``{name:
     [lo, hi]}`` for slip, kS, phiS, dphi, omega, and ``"phid_min"``. meta:
-    provenance (free-form).
+    provenance (free-form). patches: ``(P, 2)`` slip ranges of the patches
+    (:func:`check_patches`); None: one, the normalisation's slip range.
     """
 
     features: tuple
@@ -165,11 +228,18 @@ class FeatureSurrogate:
     cov_coef: np.ndarray
     covered: dict
     meta: dict
+    patches: np.ndarray | None = None
     #: Factor on the standard deviations the estimator reports with this model (1: its own posterior's; a
     #: calibrated rover model's is learnt from held-out testbed logs, :class:`slipest.rover.RoverSurrogate`).
     interval_scale: ClassVar[float] = 1.0
 
     def __post_init__(self):
+        try:
+            patches = check_patches([[self.center[0] - self.halfwidth[0], self.center[0] + self.halfwidth[0]]]
+                                    if self.patches is None else self.patches)
+        except (ValueError, IndexError, TypeError) as exc:
+            raise InverseModelError(f"inverse model slip patches: {exc}") from None
+        object.__setattr__(self, "patches", patches)
         d = len(self.features)
         m = self.node_omegas.size
         unknown = [f for f in self.features if f not in FEATURE_NAMES]
@@ -185,10 +255,11 @@ class FeatureSurrogate:
         if not shape_ok or not np.all(np.isfinite(self.center)) or not np.all(np.isfinite(self.halfwidth) & (self.halfwidth > 0)):
             raise InverseModelError(f"inverse model center and halfwidth must be {len(VARIABLES)} finite values "
                                     f"(halfwidth > 0), ranges {len(VARIABLES) + 1} pairs")
-        if self.coef.shape != (m, self.terms.shape[0], d) or self.cov_coef.shape != (m, 2, d, d):
+        p = patches.shape[0]
+        if self.coef.shape != (m, p, self.terms.shape[0], d) or self.cov_coef.shape != (m, 2, d, d):
             raise InverseModelError(
-                f"inverse model shapes do not agree: {m} nodes, {self.terms.shape[0]} terms, coef {self.coef.shape}, "
-                f"cov_coef {self.cov_coef.shape}, {d} features"
+                f"inverse model shapes do not agree: {m} nodes, {p} slip patches, {self.terms.shape[0]} terms, "
+                f"coef {self.coef.shape}, cov_coef {self.cov_coef.shape}, {d} features"
             )
         if not (np.all(np.isfinite(self.coef)) and np.all(np.isfinite(self.cov_coef))):
             raise InverseModelError("inverse model has non-finite coefficients")
@@ -243,14 +314,20 @@ class FeatureSurrogate:
         omega [rad/s], noise_smooth [g]."""
         x = np.asarray(x, dtype=float)
         flat = x.reshape(-1, 6)
-        out = np.zeros((flat.shape[0], self.coef.shape[2]))
+        d = self.coef.shape[3]
+        out = np.zeros((flat.shape[0], d))
+        weights = patch_weights(flat[:, 0], self.patches)
         for om in np.unique(flat[:, 4]):
-            rows = np.flatnonzero(flat[:, 4] == om)
-            u = (flat[rows][:, [0, 1, 2, 3, 5]] - self.center) / self.halfwidth
-            for i in range(0, rows.size, _CHUNK):
-                dm = legendre_design(u[i : i + _CHUNK], self.terms)
-                out[rows[i : i + _CHUNK]] = sum(w * (dm @ self.coef[k]) for k, w in self.node_weights(om))
-        return out.reshape(x.shape[:-1] + (self.coef.shape[2],))
+            nodes = self.node_weights(om)
+            for j, patch in enumerate(self.patches):
+                rows = np.flatnonzero((flat[:, 4] == om) & (weights[:, j] > 0))
+                c, h = patch_norm(self.center, self.halfwidth, patch)
+                u = (flat[rows][:, [0, 1, 2, 3, 5]] - c) / h
+                for i in range(0, rows.size, _CHUNK):
+                    dm = legendre_design(u[i : i + _CHUNK], self.terms)
+                    r = rows[i : i + _CHUNK]
+                    out[r] += weights[r, j, None] * sum(w * (dm @ self.coef[k, j]) for k, w in nodes)
+        return out.reshape(x.shape[:-1] + (d,))
 
     def cov(self, omega: float, noise_smooth: float) -> np.ndarray:
         """``R`` ``(d, d)`` at leg speed ``omega`` [rad/s] and smoothed noise ``noise_smooth`` [g]
@@ -267,9 +344,23 @@ class FeatureSurrogate:
         ``(nk, nphiS, ndphi, K, d)``, contracted one variable at a time (matrix products)."""
         us = (float(noise_smooth) - self.center[4]) / self.halfwidth[4]
         ps = np.polynomial.legendre.legvander(np.array([us]), int(self.terms[:, 4].max()))[0][self.terms[:, 4]]
-        coef = sum(w * self.coef[k] for k, w in self.node_weights(omega)) * ps[:, None]
-        return legendre_on_grid(self.terms[:, :4], coef, self.center[:4], self.halfwidth[:4],
-                                (slip_nodes, kS_levels, phiS_levels, dphi_levels))
+        slip_nodes = np.asarray(slip_nodes, dtype=float)
+        weights = patch_weights(slip_nodes, self.patches)
+        out = None
+        for j, patch in enumerate(self.patches):
+            used = weights[:, j] > 0
+            if not used.any():
+                continue
+            coef = sum(w * self.coef[k, j] for k, w in self.node_weights(omega)) * ps[:, None]
+            c, h = patch_norm(self.center, self.halfwidth, patch)
+            part = legendre_on_grid(self.terms[:, :4], coef, c[:4], h[:4],
+                                    (slip_nodes[used], kS_levels, phiS_levels, dphi_levels))
+            if out is None and used.all() and np.all(weights[:, j] == 1.0):
+                return part  # one patch holds every node
+            if out is None:
+                out = np.zeros(part.shape[:3] + (slip_nodes.size,) + part.shape[4:])
+            out[:, :, :, used] += weights[used, j, None] * part
+        return out
 
     # ------------------------------------------------------------------ file
     def save(self, path) -> Path:
@@ -281,6 +372,7 @@ class FeatureSurrogate:
                 fh, format_version=np.array(FORMAT_VERSION), variables=np.array(VARIABLES), features=np.array(self.features),
                 node_omegas=self.node_omegas, center=self.center, halfwidth=self.halfwidth, ranges=self.ranges,
                 phid_min=np.array(self.phid_min), terms=self.terms, coef=self.coef, cov_coef=self.cov_coef,
+                patches=self.patches,
                 covered=np.array(json.dumps(self.covered)), meta=np.array(json.dumps(self.meta, allow_nan=False)))
         return path
 
@@ -293,21 +385,25 @@ class FeatureSurrogate:
         except (OSError, ValueError, EOFError) as exc:
             raise InverseModelError(f"{name}: not an inverse model file ({exc})") from None
         version = int(d["format_version"]) if "format_version" in d else None
-        if version != FORMAT_VERSION:
+        if version not in READ_VERSIONS:
             raise InverseModelError(f"{name}: format_version {version!r} is not supported (this slipest reads "
-                                    f"{FORMAT_VERSION}); regenerate it with tools/train_inverse.py")
+                                    f"{', '.join(map(str, READ_VERSIONS))}); regenerate it with tools/train_inverse.py")
         keys = ("variables", "features", "node_omegas", "center", "halfwidth", "ranges", "phid_min", "terms", "coef",
-                "cov_coef", "covered", "meta")
+                "cov_coef", "covered", "meta") + (("patches",) if version >= 4 else ())
         missing = [k for k in keys if k not in d]
         if missing:
             raise InverseModelError(f"{name}: missing key(s) {missing}")
         if list(d["variables"]) != list(VARIABLES):
             raise InverseModelError(f"{name}: variables {list(d['variables'])} are not {list(VARIABLES)}")
+        coef = d["coef"].astype(float)
+        if version == 3:  # one patch: (M, T, d) -> (M, 1, T, d)
+            coef = coef[:, None]
         try:
             return cls(tuple(str(f) for f in d["features"]), d["node_omegas"].astype(float), d["center"].astype(float),
                        d["halfwidth"].astype(float), d["ranges"].astype(float), float(d["phid_min"]),
-                       d["terms"].astype(np.int64), d["coef"].astype(float), d["cov_coef"].astype(float),
-                       json.loads(str(d["covered"])), json.loads(str(d["meta"])))
+                       d["terms"].astype(np.int64), coef, d["cov_coef"].astype(float),
+                       json.loads(str(d["covered"])), json.loads(str(d["meta"])),
+                       d["patches"].astype(float) if version >= 4 else None)
         except InverseModelError as exc:
             raise InverseModelError(f"{name}: {exc}") from None
         except (ValueError, TypeError) as exc:
@@ -352,6 +448,7 @@ def save_inverse_model(model: FeatureSurrogate, path) -> Path:
     return model.save(path)
 
 
-__all__ = ["FORMAT_VERSION", "VARIABLES", "MODEL_FEATURES", "InverseModelError", "node_terms", "fit_node",
+__all__ = ["FORMAT_VERSION", "READ_VERSIONS", "VARIABLES", "MODEL_FEATURES", "InverseModelError", "node_terms",
+           "check_patches", "patch_weights", "patch_norm", "fit_node",
            "legendre_design", "legendre_on_grid", "whitener",
            "FeatureSurrogate", "load_inverse_model", "save_inverse_model"]
