@@ -75,6 +75,7 @@ alike.
 
 from __future__ import annotations
 
+import inspect
 import math
 import statistics
 from collections import deque
@@ -176,6 +177,20 @@ def fit_advice(cycles: int, cycles_off_model: int) -> str | None:
             "or soil differs from the simulator, so those cycles got wider intervals or, when the model could not "
             "explain them at all, no estimate (quality 'misfit'), and slip may still be biased; 'slipest calibrate' "
             "on testbed logs with a reference slip fits the model to this rover (then estimate with --rover)")
+
+
+#: Parameters of a cycle estimator's constructor that :class:`SlipEstimator` (or the calibration) sets itself.
+_SET_BY_SLIP_ESTIMATOR = frozenset({"self", "model", "inverse", "soil", "use_reference", "n_legs", "model_legs",
+                                    "model_omega"})
+
+
+def _check_options(cls, options: dict, method: str) -> None:
+    """``ValueError`` naming the options of ``options`` that ``cls``'s constructor does not take (or that
+    :class:`SlipEstimator` sets itself), with those it takes."""
+    known = set(inspect.signature(cls).parameters) - _SET_BY_SLIP_ESTIMATOR
+    unknown = sorted(set(options) - known)
+    if unknown:
+        raise ValueError(f"unknown option(s) {unknown} of the {method!r} estimator; it takes {sorted(known)}")
 
 
 #: :meth:`SlipEstimator.push` has the estimator prefetch its tables into the CPU caches once this
@@ -414,6 +429,7 @@ class SlipEstimator:
         if self.method == "eq515":
             from slipest.inverse.eq515 import Eq515Tracker
 
+            _check_options(Eq515Tracker, self._est_opts, self.method)
             # a rover model (slipest.rover) carries its own refitted Eq. 5.15 calibration
             calibration = self._calibration if self._calibration is not None else getattr(self._model, "eq515", None)
             self.filter = Eq515Tracker.from_calibration(self.soil, self.use_reference, calibration, **self._est_opts)
@@ -421,6 +437,7 @@ class SlipEstimator:
         else:
             from slipest.estimator import SoilSlipEstimator
 
+            _check_options(SoilSlipEstimator, self._est_opts, self.method)
             self.filter = SoilSlipEstimator(model=self._model, soil=self.soil, use_reference=self.use_reference,
                                             n_legs=self.n_legs, **self._est_opts)
             what = "the inverse model"

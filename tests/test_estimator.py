@@ -301,6 +301,16 @@ def test_known_soil_and_eq515_method(change_stream, slips):
         SlipEstimator(method="nope")
 
 
+def test_unknown_estimator_options_are_refused_by_name_with_those_taken():
+    with pytest.raises(ValueError, match=r"unknown option\(s\) \['nope'\] of the 'default' estimator; it takes .*soil_temper"):
+        SlipEstimator(estimator={"nope": 1.0, "soil_temper": 0.1})
+    with pytest.raises(ValueError, match=r"unknown option\(s\) \['model'\].*"):  # set by SlipEstimator itself
+        SlipEstimator(estimator={"model": None})
+    with pytest.raises(ValueError, match=r"\['hazard'\] of the 'eq515' estimator; it takes .*'q'"):
+        SlipEstimator(method="eq515", soil=dict(kS=900.0, phiS=0.5, phiD=0.3), estimator={"hazard": 0.1})
+    assert SlipEstimator(estimator={"soil_temper": 0.1}).filter.soil_temper == 0.1
+
+
 def test_leg_speed_outside_the_covered_range_is_flagged_not_estimated():
     """The shipped model covers 0.3-1.2 rad/s: 0.82 rad/s is estimated, 1.6 rad/s gives NaN rows flagged 'speed'."""
     lo, hi = SlipEstimator().filter.omega_range

@@ -43,7 +43,7 @@ from tqdm import tqdm
 
 from slipest.inverse.feature_inverse import FeatureInverse
 from slipest.inverse.grid import SoilGrid
-from slipest.inverse.surrogate import load_inverse_model
+from slipest.inverse.surrogate import InverseModelError, load_inverse_model
 from slipest.model.params import StickSlipParams
 from slipest.model.scenario import Scenario
 from slipest.model.stream import iter_stream, simulate_stream
@@ -131,6 +131,8 @@ def run_one(run: dict, rate: float, noise: float, inverse: FeatureInverse, model
 
 
 def figures(rows: list[dict], sel_fn, from_cycle: int) -> dict:
+    if not rows:  # (a group with no run: --runs 1 has no changing-speed run)
+        return {"cycles": 0}
     cat = {k: np.concatenate([np.atleast_1d(r[k]) for r in rows]) for k in rows[0] if k != "noise"}
     sel_all = sel_fn(cat)
     out = {"cycles": int(sel_all.sum())}
@@ -191,14 +193,25 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=2024)
     ap.add_argument("--model", help="inverse model file (default: the shipped one)")
     ap.add_argument("--json", help="also write the figures to this JSON file")
+    ap.add_argument("--estimator", type=json.loads, default={},
+                    help="research: options of the soil and slip estimator as JSON (e.g. '{\"soil_temper\": 0.1}')")
     ap.add_argument("--grid-refine", type=int, default=1, metavar="N",
                     help="research: the estimator's soil grid with every spacing divided by N (N**3 times the cells "
                          "and the work per cycle; default 1, the shipped grid)")
     args = ap.parse_args(argv)
     if args.grid_refine < 1:
         ap.error(f"--grid-refine must be >= 1, got {args.grid_refine}")
-    estimator = None if args.grid_refine == 1 else {"grid": SoilGrid.default().refined(args.grid_refine)}
-    model = load_inverse_model(args.model)
+    estimator = dict(args.estimator)
+    if args.grid_refine > 1:
+        estimator["grid"] = SoilGrid.default().refined(args.grid_refine)
+    try:
+        model = load_inverse_model(args.model)
+    except InverseModelError as exc:
+        ap.error(str(exc))
+    try:
+        SlipEstimator(model=model, estimator=estimator or None)  # options checked before the runs
+    except ValueError as exc:
+        ap.error(f"--estimator: {exc}")
     inverse = FeatureInverse(model)
     t0 = time.time()
     rng = np.random.default_rng(args.seed)
@@ -208,7 +221,7 @@ def main(argv=None) -> int:
         for rate, noise in args.conditions:
             rows = []
             for run in runs:
-                rows.append(run_one(run, rate, noise, inverse, model, estimator=estimator))
+                rows.append(run_one(run, rate, noise, inverse, model, estimator=estimator or None))
                 bar.update(1)
             name = f"{rate:g} Hz, {noise:g} g"
             groups = {"all": figures(rows, lambda c: np.ones(c["since"].size, bool), args.from_cycle)}
@@ -223,7 +236,8 @@ def main(argv=None) -> int:
             noise_est = [r["noise"] for r in rows]
             results[name] = {"groups": groups, "noise_estimated_g": [float(np.nanmin(noise_est)),
                                                                      float(np.nanmax(noise_est))]}
-    grid = "" if estimator is None else f", soil grid refined {args.grid_refine}x ({estimator['grid'].size} cells)"
+    grid = "" if args.grid_refine == 1 else f", soil grid refined {args.grid_refine}x ({estimator['grid'].size} cells)"
+    grid += f", estimator options {args.estimator}" if args.estimator else ""
     print(f"{args.runs} runs x {args.soils} soils x {args.cycles_per_soil} cycles per condition, seed {args.seed}, "
           f"scored from the {args.from_cycle}th cycle on a soil{grid}; {time.time() - t0:.0f} s")
     for name, res in results.items():

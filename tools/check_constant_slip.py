@@ -28,6 +28,7 @@ from tqdm import tqdm
 from slipest.model.params import StickSlipParams
 from slipest.model.scenario import Scenario
 from slipest.model.stream import simulate_stream
+from slipest.inverse.surrogate import InverseModelError, load_inverse_model
 from slipest.online import SlipEstimator
 
 
@@ -38,7 +39,12 @@ def main(argv=None) -> int:
     ap.add_argument("--cycles", type=int, default=12)
     ap.add_argument("--seed", type=int, default=2024, help="official seed 2024 (development used 5)")
     ap.add_argument("--estimator", type=json.loads, default={}, help="estimator options as JSON")
+    ap.add_argument("--model", help="inverse model file (default: the shipped one)")
     args = ap.parse_args(argv)
+    try:
+        model = load_inverse_model(args.model)
+    except InverseModelError as exc:
+        ap.error(str(exc))
     slips = [float(s) for s in args.slips.split(",")]
     rng = np.random.default_rng(args.seed)
     rows = []
@@ -52,7 +58,7 @@ def main(argv=None) -> int:
                 sc = Scenario.per_cycle(StickSlipParams(), dict(noise_g=0.01, seed=k), slip=[slip] * n, kS=[kS] * n,
                                         phiS=[phiS] * n, phiD=[phiS - dphi] * n)
                 s = simulate_stream(sc)
-                est = SlipEstimator(estimator=args.estimator).push_many(s.t, s.az, s.theta)
+                est = SlipEstimator(model=model, estimator=args.estimator).push_many(s.t, s.az, s.theta)
                 e = est[-1]
                 rows.append((phiS, dphi, kS, slip, e.slip, e.slip_std))
                 bar.update()

@@ -58,6 +58,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import check_withheld_effects as withheld  # noqa: E402  (tools/check_withheld_effects.py: the draws)
 
 from slipest.diagnosis.synth import simulate_run  # noqa: E402
+from slipest.inverse.surrogate import InverseModelError, load_inverse_model  # noqa: E402
 from slipest.model.effects import ORDER  # noqa: E402
 from slipest.online import SlipEstimator  # noqa: E402
 
@@ -106,10 +107,11 @@ def simulate_log(truth: str, case_seed: int, args) -> dict:
     return out
 
 
-def estimate_log(log: dict, estimator_opts: dict) -> dict:
-    """Per-cycle estimates of one log (soil unknown, no rover file): arrays over the log's cycles."""
+def estimate_log(log: dict, estimator_opts: dict, model=None) -> dict:
+    """Per-cycle estimates of one log (soil unknown, no rover file; ``model``: an inverse model, default the
+    shipped one): arrays over the log's cycles."""
     n = len(log["slips"])
-    est = SlipEstimator(n_legs=int(log["n_legs"]), estimator=estimator_opts)
+    est = SlipEstimator(n_legs=int(log["n_legs"]), model=model, estimator=estimator_opts)
     rows = est.push_many(log["t"], log["az"], log["theta"]) + est.finish()
     out = {k: np.full(n, np.nan) for k in ("slip", "slip_std", "dphi", "dphi_std", "misfit", "discrepancy")}
     out["ok"] = np.zeros(n, bool)
@@ -168,12 +170,17 @@ def main(argv=None) -> int:
     ap.add_argument("--from-cycle", type=int, default=10, help="score from this cycle of a log (default 10)")
     ap.add_argument("--estimator", type=json.loads, default={}, help="estimator options as JSON")
     ap.add_argument("--cache", help="directory caching the simulated logs (rerun the estimator alone)")
+    ap.add_argument("--model", help="inverse model file (default: the shipped one)")
     ap.add_argument("--json", help="also write the figures and every case to this JSON file")
     args = ap.parse_args(argv)
     truths = [t.strip() for t in args.effects.split(",") if t.strip()]
     for t in truths:
         if t not in TRUTHS:
             ap.error(f"unknown truth {t!r}; known: {', '.join(TRUTHS)}")
+    try:
+        model = load_inverse_model(args.model)
+    except InverseModelError as exc:
+        ap.error(str(exc))
     rng = np.random.default_rng(args.seed)
     seeds = {(t, k): int(rng.integers(2**62)) for k in range(args.cases) for t in TRUTHS}  # same draw per truth
     t0 = time.time()
@@ -183,7 +190,7 @@ def main(argv=None) -> int:
     for truth, k in bar:
         bar.set_postfix_str(truth)
         log = simulate_log(truth, seeds[(truth, k)], args)
-        r = estimate_log(log, args.estimator)
+        r = estimate_log(log, args.estimator, model)
         r["change"] = log["change"]
         r["params"] = log["params"]
         per_truth[truth].append(r)
