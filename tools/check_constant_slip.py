@@ -25,10 +25,10 @@ import json
 import numpy as np
 from tqdm import tqdm
 
+from slipest.inverse.surrogate import InverseModelError, load_inverse_model
 from slipest.model.params import StickSlipParams
 from slipest.model.scenario import Scenario
 from slipest.model.stream import simulate_stream
-from slipest.inverse.surrogate import InverseModelError, load_inverse_model
 from slipest.online import SlipEstimator
 
 
