@@ -38,16 +38,16 @@ from slipest.features import INDEX
 from slipest.inverse.feature_inverse import FeatureInverse
 from slipest.inverse.simdata import ENVELOPE, NOISE_RANGE, PHID_MIN, RATE_RANGE, draw_envelope, draw_imu, simulate_features
 from slipest.inverse.surrogate import (VARIABLES, FeatureSurrogate, MODEL_FEATURES, check_patches, fit_node, node_terms,
-                                       save_inverse_model)
+                                       one_patch, patch_weights, save_inverse_model)
 from slipest.model.params import StickSlipParams
 
 DEFAULT_OUT = Path(__file__).resolve().parents[1] / "slipest" / "data" / "inverse_model.npz"
 
 #: Term schedules: {noise degree: total degree in (slip, kS, phiS, dphi)}.
 SCHEDULES = {"default": {0: 14, 1: 8, 2: 6}, "small": {0: 8, 1: 4}, "tiny": {0: 3, 1: 1}}
-#: Slip patches of the shipped model: one, over the whole training range. ``--patches 0:0.33,0.22:0.55`` fits two
-#: overlapping ones (research: better with the soil known, not with it unknown; docs/estimator.md, "Slip patches").
-PATCHES = "0:0.55"
+#: Slip patches of the research model: two overlapping ones (better with the soil known, not with it unknown;
+#: docs/estimator.md, "Slip patches"). The shipped model has one, over the training range (the default).
+RESEARCH_PATCHES = "0:0.33,0.22:0.55"
 #: Speeds of the first and last node [rad/s].
 NODE_SPAN = (0.27, 1.29)
 #: What the estimator promises (the training envelope is wider).
@@ -60,7 +60,7 @@ def patches_arg(text: str) -> np.ndarray:
     try:
         return check_patches([[float(v) for v in item.split(":")] for item in text.split(",")])
     except ValueError as exc:
-        raise argparse.ArgumentTypeError(f"--patches {text!r}: {exc} (expected LO:HI,LO:HI like {PATCHES})") from None
+        raise argparse.ArgumentTypeError(f"--patches {text!r}: {exc} (expected LO:HI,LO:HI like {RESEARCH_PATCHES})") from None
 
 
 def simulate(x, rng: np.random.Generator, base: StickSlipParams, bar) -> tuple[np.ndarray, np.ndarray]:
@@ -120,9 +120,9 @@ def main(argv=None) -> int:
     ap.add_argument("--n-node", type=int, default=100000, help="training stances per node (default 100000)")
     ap.add_argument("--n-val", type=int, default=4000, help="held-out stances between the nodes (default 4000)")
     ap.add_argument("--schedule", choices=sorted(SCHEDULES), default="default", help="term schedule (default: default)")
-    ap.add_argument("--patches", type=patches_arg, default=patches_arg(PATCHES),
+    ap.add_argument("--patches", type=patches_arg,
                     help=f"slip patches LO:HI,... each with its own polynomials, blended across the overlaps "
-                         f"(default {PATCHES}: one; research: 0:0.33,0.22:0.55)")
+                         f"(default: one, over the training range; research: {RESEARCH_PATCHES})")
     ap.add_argument("--n-check", type=int, default=800,
                     help="held-out stances the one-cycle figures and the misfit level use (default 800; each needs "
                     "a grid table at its speed and noise, about 0.1 s)")
@@ -175,10 +175,11 @@ def main(argv=None) -> int:
     terms = node_terms(SCHEDULES[args.schedule])
     cols = [INDEX[f] for f in MODEL_FEATURES]
     coef, cov_coef = [], []
-    patch_rows = sum(int(np.sum((xn[:, 0] >= lo) & (xn[:, 0] <= hi))) for xn in x_nodes for lo, hi in args.patches)
+    patches = one_patch(center, halfwidth) if args.patches is None else args.patches
+    patch_rows = sum(int(np.sum(patch_weights(xn[:, 0], patches) > 0)) for xn in x_nodes)  # what fit_node fits
     with tqdm(total=patch_rows, desc="fit", unit="row", file=sys.stderr) as bar:
         for xn, fn in zip(x_nodes, f_nodes):
-            c, r = fit_node(xn[:, [0, 1, 2, 3, 5]], fn[:, cols], terms, center, halfwidth, args.patches,
+            c, r = fit_node(xn[:, [0, 1, 2, 3, 5]], fn[:, cols], terms, center, halfwidth, patches,
                             progress=bar.update)
             coef.append(c)
             cov_coef.append(r)
@@ -189,7 +190,7 @@ def main(argv=None) -> int:
         "slipest_version": __version__,
         "training": {"n_per_node": int(len(x_nodes[0])), "n_val": int(len(x_va)), "seed": args.seed,
                      "schedule": {str(k): v for k, v in SCHEDULES[args.schedule].items()},
-                     "n_terms": int(terms.shape[0]), "patches": args.patches.tolist(), "envelope": ENVELOPE, "phid_min": PHID_MIN,
+                     "n_terms": int(terms.shape[0]), "patches": patches.tolist(), "envelope": ENVELOPE, "phid_min": PHID_MIN,
                      "rate_hz": list(RATE_RANGE), "noise_g": list(NOISE_RANGE),
                      "model": f"StickSlipParams defaults but nL {args.legs}", "n_legs": args.legs,
                      "simulate_s": round(t_sim), "fit_s": round(t_fit)},
@@ -199,7 +200,7 @@ def main(argv=None) -> int:
 
     def build(meta):
         return FeatureSurrogate(MODEL_FEATURES, node_omegas, center, halfwidth, ranges, PHID_MIN, terms,
-                                np.stack(coef), np.stack(cov_coef), covered, meta, args.patches)
+                                np.stack(coef), np.stack(cov_coef), covered, meta, patches)
 
     model = build(meta)
     save_inverse_model(model, args.out)  # (again below with the held-out figures): not lost if checking fails

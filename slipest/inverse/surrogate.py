@@ -126,6 +126,11 @@ def check_patches(patches) -> np.ndarray:
     return p
 
 
+def one_patch(center, halfwidth) -> np.ndarray:
+    """The slip patches of a model without any: one, over the normalisation's slip range ``center +- halfwidth``."""
+    return check_patches([[center[0] - halfwidth[0], center[0] + halfwidth[0]]])
+
+
 def patch_weights(slip, patches) -> np.ndarray:
     """Blending weights ``(n, P)`` of the slip patches (``(P, 2)``, :func:`check_patches`) at slips ``(n,)`` [-]:
     1 where only one patch covers the slip (below the first and above the last patch too), a smoothstep
@@ -153,27 +158,25 @@ def fit_node(x5, y, terms: np.ndarray, center, halfwidth, patches=None,
              progress=None) -> tuple[np.ndarray, np.ndarray]:
     """One speed node's least-squares fit: ``(coef (P, T, d), cov_coef (2, d, d))`` from points ``x5`` ``(n, 5)``
     (order of :data:`VARIABLES`, SI) and modelled features ``y`` ``(n, d)`` (rows with non-finite values are
-    dropped). Each slip patch (``patches`` ``(P, 2)``; default one, the normalisation's slip range) is fitted on
-    the rows within its range; the residual covariance, of the blended mean, is ``A + s^2 B`` by least squares on
-    the residuals' outer products."""
+    dropped). Each slip patch (``patches`` ``(P, 2)``; default :func:`one_patch`) is fitted on the rows it
+    weighs (:func:`patch_weights` > 0: within its range, and beyond it for the first and last); the residual
+    covariance, of the blended mean, is ``A + s^2 B`` by least squares on the residuals' outer products."""
     x5 = np.asarray(x5, dtype=float)
     y = np.asarray(y, dtype=float)
-    if patches is None:
-        patches = [[center[0] - halfwidth[0], center[0] + halfwidth[0]]]
-    patches = check_patches(patches)
+    patches = one_patch(center, halfwidth) if patches is None else check_patches(patches)
     ok = np.all(np.isfinite(y), axis=1) & np.all(np.isfinite(x5), axis=1)
     x5, y = x5[ok], y[ok]
     weights = patch_weights(x5[:, 0], patches)
     coef = np.empty((patches.shape[0], len(terms), y.shape[1]))
     fitted = np.zeros_like(y)
     for j, patch in enumerate(patches):
-        inside = (x5[:, 0] >= patch[0]) & (x5[:, 0] <= patch[1]) if patches.shape[0] > 1 else np.ones(len(x5), bool)
-        if inside.sum() < 10 * len(terms):
-            raise ValueError(f"too few training rows ({inside.sum()}) for {len(terms)} terms in slip patch "
+        used = np.flatnonzero(weights[:, j] > 0)
+        if used.size < 10 * len(terms):
+            raise ValueError(f"too few training rows ({used.size}) for {len(terms)} terms in slip patch "
                              f"{patch.tolist()}")
         c, h = patch_norm(center, halfwidth, patch)
-        u = (x5[inside] - c) / h
-        yp = y[inside]
+        u = (x5[used] - c) / h
+        yp = y[used]
         # normal equations accumulated in blocks; the Legendre basis keeps them well conditioned, a tiny ridge
         # guards the rank
         a = np.zeros((len(terms), len(terms)))
@@ -185,8 +188,6 @@ def fit_node(x5, y, terms: np.ndarray, center, halfwidth, patches=None,
             if progress:
                 progress(dm.shape[0])
         coef[j] = np.linalg.solve(a + 1e-8 * np.trace(a) / len(terms) * np.eye(len(terms)), b)
-        used = np.flatnonzero(weights[:, j] > 0)
-        u = (x5[used] - c) / h
         for i in range(0, used.size, _CHUNK):
             rows = used[i : i + _CHUNK]
             fitted[rows] += weights[rows, j, None] * (legendre_design(u[i : i + _CHUNK], terms) @ coef[j])
@@ -235,8 +236,7 @@ class FeatureSurrogate:
 
     def __post_init__(self):
         try:
-            patches = check_patches([[self.center[0] - self.halfwidth[0], self.center[0] + self.halfwidth[0]]]
-                                    if self.patches is None else self.patches)
+            patches = one_patch(self.center, self.halfwidth) if self.patches is None else check_patches(self.patches)
         except (ValueError, IndexError, TypeError) as exc:
             raise InverseModelError(f"inverse model slip patches: {exc}") from None
         object.__setattr__(self, "patches", patches)
@@ -355,8 +355,8 @@ class FeatureSurrogate:
             c, h = patch_norm(self.center, self.halfwidth, patch)
             part = legendre_on_grid(self.terms[:, :4], coef, c[:4], h[:4],
                                     (slip_nodes[used], kS_levels, phiS_levels, dphi_levels))
-            if out is None and used.all() and np.all(weights[:, j] == 1.0):
-                return part  # one patch holds every node
+            if np.all(weights[:, j] == 1.0):
+                return part  # one patch holds every node (the weights sum to one: the others were skipped)
             if out is None:
                 out = np.zeros(part.shape[:3] + (slip_nodes.size,) + part.shape[4:])
             out[:, :, :, used] += weights[used, j, None] * part
@@ -449,6 +449,6 @@ def save_inverse_model(model: FeatureSurrogate, path) -> Path:
 
 
 __all__ = ["FORMAT_VERSION", "READ_VERSIONS", "VARIABLES", "MODEL_FEATURES", "InverseModelError", "node_terms",
-           "check_patches", "patch_weights", "patch_norm", "fit_node",
+           "check_patches", "one_patch", "patch_weights", "patch_norm", "fit_node",
            "legendre_design", "legendre_on_grid", "whitener",
            "FeatureSurrogate", "load_inverse_model", "save_inverse_model"]
