@@ -15,8 +15,11 @@ Each simulated *rover* carries one hidden sim-to-real effect:
 
 each drawn until it changes the testbed's ``Da`` by 10-45 % on average
 (noise-free, ``slipest.diagnosis.synth.da_change``). The rover's ``kappa``
-is the model's (0.3), its leg speed 0.63 rad/s, its IMU 1 kHz with 0.01 g
-noise. Per rover:
+is the model's (0.3; ``--kappa`` sets another: the rover's leg then differs
+from the model's too, which the calibration's diagnosis fits), its leg speed
+0.63 rad/s, its IMU 1 kHz with 0.01 g noise. ``--effects none`` runs a
+rover with no effect, only its ``--kappa`` (not in the default set). Per
+rover:
 
 1. two *testbed* logs, each on its own soil (drawn as the check tool draws
    them), 8 slip levels 0.05-0.45 x 5 cycles in random order, with the
@@ -49,6 +52,7 @@ soils and slips, which no calibration can beat).
     python tools/bench_calibration.py --seed 2025 --json out/bench_calibration.json     # official, ~20 min
     python tools/bench_calibration.py --quick --seed 3                                  # development
     python tools/bench_calibration.py --seed 4 --effects imu_lowpass --clean            # against the clean rover
+    python tools/bench_calibration.py --seed 3 --effects none,contact_damping --kappa 0.38   # a stiffer leg
 """
 
 from __future__ import annotations
@@ -91,6 +95,9 @@ DA_CHANGE = (0.10, 0.45)
 VARIANTS = ("impact_rising", "imu_boxcar")
 OUT_OF_CATALOG = ("hub_rocking", "bracket_resonance")
 TRUTHS = tuple(ORDER) + VARIANTS + OUT_OF_CATALOG
+#: Rovers run only when named (``--effects none``): no effect, only the rover's ``--kappa`` (drawn after
+#: :data:`TRUTHS`, so naming them leaves the other rovers' draws unchanged).
+EXTRA_TRUTHS = ("none",)
 QUICK = ("contact_damping", "imu_lowpass", "impact_rising", "hub_rocking")
 
 
@@ -147,7 +154,9 @@ def draw_variant(name, rng):
 
 
 def stages_of(truth, params):
-    """Fresh stage objects (they keep state) for a variant or out-of-catalog effect."""
+    """Fresh stage objects (they keep state) for a variant or out-of-catalog effect (none for ``none``)."""
+    if truth == "none":
+        return []
     if truth in VARIANTS:
         return {"impact_rising": lambda: [RisingImpact(**params)], "imu_boxcar": lambda: [Boxcar(**params)]}[truth]()
     return withheld.draw_ooc_fixed(truth, params)[1]
@@ -156,33 +165,36 @@ def stages_of(truth, params):
 # --- one rover ---------------------------------------------------------------------------------------
 
 
-def testbed_scenario(rng, soil) -> Scenario:
+def testbed_scenario(rng, soil, kappa: float = KAPPA) -> Scenario:
     slips = np.repeat(rng.permutation(LEVELS), CYCLES_PER_LEVEL)
-    base = StickSlipParams(kS=soil["kS"], phiS=soil["phiS"], phiD=soil["phiD"], kappa=KAPPA, omega=OMEGA, nL=N_LEGS)
+    base = StickSlipParams(kS=soil["kS"], phiS=soil["phiS"], phiD=soil["phiD"], kappa=kappa, omega=OMEGA, nL=N_LEGS)
     return Scenario.per_cycle(base, {"rate": RATE, "noise_g": NOISE_G, "seed": int(rng.integers(2**31))}, slip=slips)
 
 
-def drive_scenario(rng, soil) -> Scenario:
+def drive_scenario(rng, soil, kappa: float = KAPPA) -> Scenario:
     slip = np.empty(DRIVE_CYCLES)
     j = 0
     while j < DRIVE_CYCLES:
         k = int(rng.integers(2, 5))
         slip[j : j + k] = rng.uniform(0.0, 0.5)
         j += k
-    base = StickSlipParams(kS=soil["kS"], phiS=soil["phiS"], phiD=soil["phiD"], kappa=KAPPA, omega=OMEGA, nL=N_LEGS)
+    base = StickSlipParams(kS=soil["kS"], phiS=soil["phiS"], phiD=soil["phiD"], kappa=kappa, omega=OMEGA, nL=N_LEGS)
     return Scenario.per_cycle(base, {"rate": RATE, "noise_g": NOISE_G, "seed": int(rng.integers(2**31))}, slip=slip)
 
 
-def draw_rover(truth, rng):
+def draw_rover(truth, rng, kappa: float = KAPPA):
     """(catalog effect specs, extra-stage params, soils of the testbed and drives, Da change).
 
     As ``tools/check_withheld_effects.py`` does: the effect's parameters are redrawn up to 10 times until
-    the effect changes Da by 10-45 % on the first testbed log; if none does on those soils (a Stribeck curve
-    barely matters on some soils), the soils are redrawn too (up to 10 times)."""
+    the effect changes Da by 10-45 % on the first testbed log (at the rover's ``kappa``); if none does on
+    those soils (a Stribeck curve barely matters on some soils), the soils are redrawn too (up to 10 times).
+    ``none``: no effect (Da change 0)."""
     for _soils in range(10):
         tb_soils = [withheld.draw_soil(rng) for _ in range(2)]
         drive_soils = [withheld.draw_soil(rng) for _ in range(DRIVES)]
-        probe = testbed_scenario(np.random.default_rng(rng.integers(2**31)), tb_soils[0])
+        if truth == "none":
+            return (), {}, tb_soils, drive_soils, 0.0
+        probe = testbed_scenario(np.random.default_rng(rng.integers(2**31)), tb_soils[0], kappa)
         for _ in range(10):
             if truth in ORDER:
                 spec = withheld.draw_catalog(truth, rng)
@@ -238,16 +250,17 @@ def summarise(scores) -> dict:
             "estimated": sum(s["n_estimated"] for s in scores) / n if n else math.nan, "n_scored": int(err.size)}
 
 
-def run_rover(truth, rng, options: CalibrateOptions, workdir: str, log, clean: bool = False) -> dict:
-    effects, params, tb_soils, drive_soils, change = draw_rover(truth, rng)
+def run_rover(truth, rng, options: CalibrateOptions, workdir: str, log, clean: bool = False,
+              kappa: float = KAPPA) -> dict:
+    effects, params, tb_soils, drive_soils, change = draw_rover(truth, rng, kappa)
     tb_paths, drive_paths, clean_paths = [], [], []
     for j, soil in enumerate(tb_soils):
         p = os.path.join(workdir, f"{truth}_testbed{j}.csv")
-        write_log(p, testbed_scenario(rng, soil), truth, effects, params)
+        write_log(p, testbed_scenario(rng, soil, kappa), truth, effects, params)
         tb_paths.append(p)
     for j, soil in enumerate(drive_soils):
         p = os.path.join(workdir, f"{truth}_drive{j}.csv")
-        scenario = drive_scenario(rng, soil)
+        scenario = drive_scenario(rng, soil, kappa)
         write_log(p, scenario, truth, effects, params)
         drive_paths.append(p)
         if clean:
@@ -291,6 +304,8 @@ def main(argv=None) -> int:
     ap.add_argument("--batch", type=int, default=CalibrateOptions().batch, help="calibrate --batch")
     ap.add_argument("--keep", metavar="DIR", help="keep the logs and rover files in DIR")
     ap.add_argument("--json", metavar="FILE", help="write every rover's figures as JSON")
+    ap.add_argument("--kappa", type=float, default=KAPPA,
+                    help=f"the rovers' kappa (lateral leg stiffness over kS; default {KAPPA:g}, the model's)")
     ap.add_argument("--clean", action="store_true",
                     help="also replay each drive simulated without the rover's effect with the shipped model (same "
                          "soils, slips and noise draw): the estimator's own error on those drives, which a "
@@ -298,13 +313,15 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     truths = [t.strip() for t in args.effects.split(",")] if args.effects else list(QUICK if args.quick else TRUTHS)
     for t in truths:
-        if t not in TRUTHS:
-            ap.error(f"unknown truth {t!r} (known: {', '.join(TRUTHS)})")
+        if t not in TRUTHS + EXTRA_TRUTHS:
+            ap.error(f"unknown truth {t!r} (known: {', '.join(TRUTHS + EXTRA_TRUTHS)})")
+    if not 0.0 <= args.kappa <= 1.0:
+        ap.error(f"--kappa {args.kappa} must be in [0, 1]")
     if args.seed == OFFICIAL_SEED:
         print(f"official seed {OFFICIAL_SEED}: report the figures, never tune on them", file=sys.stderr)
     options = CalibrateOptions(quick=not args.thorough, batch=args.batch)
     master = np.random.default_rng(args.seed)
-    seeds = {t: int(master.integers(2**63)) for t in TRUTHS}  # a rover's draw does not depend on the others run
+    seeds = {t: int(master.integers(2**63)) for t in TRUTHS + EXTRA_TRUTHS}  # a rover's draw: not the others run
 
     def log(text):
         print(text, file=sys.stderr, flush=True)
@@ -316,7 +333,8 @@ def main(argv=None) -> int:
         os.makedirs(workdir, exist_ok=True)
         for k, truth in enumerate(truths):
             log(f"[{k + 1}/{len(truths)}] {truth} ({time.perf_counter() - t_all:.0f} s so far)")
-            r = run_rover(truth, np.random.default_rng(seeds[truth]), options, workdir, log, clean=args.clean)
+            r = run_rover(truth, np.random.default_rng(seeds[truth]), options, workdir, log, clean=args.clean,
+                          kappa=args.kappa)
             results.append(r)
             u, c = summarise(r["uncalibrated"]), summarise(r["calibrated"])
             log(f"    {truth}: dDa {100 * r['da_change']:.0f}%, calibrated in {r['calibrate_s']:.0f} s "

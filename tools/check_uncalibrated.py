@@ -43,6 +43,7 @@ dominates; ``--cases 4`` over 11 truths: 4-8 min).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -66,13 +67,17 @@ OFFICIAL_SEED = 2024
 TRUTHS = ORDER + withheld.OUT_OF_CATALOG + ("none",)
 
 
-def draw_log(truth: str, rng, min_change: float, max_change: float, tries: int = 30):
+def draw_log(truth: str, rng, min_change: float, max_change: float, tries: int = 30, kappa: float | None = None):
     """``(scenario, soil, extra stages, effect params, Da change)`` of one log, its effect changing ``Da`` by
     ``min_change``-``max_change`` (redrawn with ``rng`` until it does; the encoder's quantisation is kept
-    whatever its change)."""
+    whatever its change). ``kappa``: None, the rover's ``kappa`` as drawn (0.25-0.40); else every cycle's set to
+    it after the same draw (the same soil, slips and effect; the effect's ``Da`` change is the drawn rover's)."""
     for _ in range(tries):
         sc, soil, _effects, stages, params, change = withheld.make_case(truth, rng, min_change)
         if truth in ("none", "encoder_quantisation") or change <= max_change:
+            if kappa is not None:
+                sc = dataclasses.replace(sc, cycles=tuple(dataclasses.replace(c, kappa=kappa) for c in sc.cycles))
+                soil = {**soil, "kappa": kappa}
             return sc, soil, stages, params, change
     raise RuntimeError(f"no {truth} draw changed Da by {min_change:.0%}-{max_change:.0%} in {tries} tries")
 
@@ -82,7 +87,8 @@ def simulate_log(truth: str, case_seed: int, args) -> dict:
     cache written before ``dphi`` was kept gets it from the same draw, and is rewritten with it)."""
     path = None
     if args.cache:
-        path = os.path.join(args.cache, f"{truth}_{case_seed}_{args.min_change:g}_{args.max_change:g}.npz")
+        kappa = "" if args.kappa is None else f"_kappa{args.kappa:g}"
+        path = os.path.join(args.cache, f"{truth}_{case_seed}_{args.min_change:g}_{args.max_change:g}{kappa}.npz")
         if os.path.exists(path):
             with np.load(path, allow_pickle=False) as z:
                 out = {k: z[k] for k in z.files}
@@ -92,12 +98,12 @@ def simulate_log(truth: str, case_seed: int, args) -> dict:
                 out["dphi"] = float(out["dphi"])
                 return out
             _sc, soil, _stages, _params, _change = draw_log(truth, np.random.default_rng(case_seed),
-                                                            args.min_change, args.max_change)
+                                                            args.min_change, args.max_change, kappa=args.kappa)
             out["dphi"] = soil["phiS"] - soil["phiD"]
             np.savez(path, **{**out, "params": json.dumps(out["params"], default=float)})
             return out
     sc, soil, stages, params, change = draw_log(truth, np.random.default_rng(case_seed), args.min_change,
-                                                args.max_change)
+                                                args.max_change, kappa=args.kappa)
     run = simulate_run(sc, stages)
     out = {"t": run["t"], "az": run["az"], "theta": run["theta"], "slips": sc.slips, "n_legs": sc.n_legs,
            "params": params, "change": change, "dphi": soil["phiS"] - soil["phiD"]}
@@ -167,6 +173,8 @@ def main(argv=None) -> int:
                     "out-of-catalog names, none)")
     ap.add_argument("--min-change", type=float, default=0.10, help="smallest mean |dDa/Da| of a drawn effect")
     ap.add_argument("--max-change", type=float, default=0.45, help="largest mean |dDa/Da| of a drawn effect")
+    ap.add_argument("--kappa", type=float, help="set every log's rover kappa to this after its draw (e.g. 0.3, the "
+                    "model's: the effect alone); default: as drawn, 0.25-0.40 (the effect and a kappa mismatch)")
     ap.add_argument("--from-cycle", type=int, default=10, help="score from this cycle of a log (default 10)")
     ap.add_argument("--estimator", type=json.loads, default={}, help="estimator options as JSON")
     ap.add_argument("--cache", help="directory caching the simulated logs (rerun the estimator alone)")
@@ -200,9 +208,10 @@ def main(argv=None) -> int:
                    f"{f.get('misfit_share', math.nan):4.0%}  dDa "
                    f"{log['change'] * 100:5.1f}%", file=sys.stderr)
     bar.close()
+    kappa = "drawn 0.25-0.40" if args.kappa is None else f"{args.kappa:g} in every log"
     print(f"uncalibrated estimator on logs with one unmodelled effect: {args.cases} logs per effect, seed "
-          f"{args.seed}{' (official)' if args.seed == OFFICIAL_SEED else ''}, scored from cycle {args.from_cycle}; "
-          f"{time.time() - t0:.0f} s")
+          f"{args.seed}{' (official)' if args.seed == OFFICIAL_SEED else ''}, rover kappa {kappa}, scored from cycle "
+          f"{args.from_cycle}; {time.time() - t0:.0f} s")
     print(f"  {'effect in the log':21s} {'slip RMSE':>9s} {'bias':>7s} {'cover95':>7s} {'dphi':>7s} {'d.cov95':>7s} "
           f"{'estim.':>6s} {'flag.m':>6s} "
           f"{'misfit':>6s} {'med.mis':>7s} {'med.dis':>7s} {'med.std':>7s}  dDa")
