@@ -10,6 +10,8 @@ from slipest.inverse.surrogate import (
     FeatureSurrogate,
     InverseModelError,
     check_patches,
+    cov_knot_weights,
+    default_cov_knots,
     fit_node,
     load_inverse_model,
     node_terms,
@@ -59,7 +61,8 @@ def _fit(patches, n=4000):
         cov.append(r)
     ranges = np.vstack([np.column_stack([LO, HI]), [NODES[0], NODES[-1]]])
     return FeatureSurrogate(FEATS, NODES, CENTER, HALF, ranges, 0.1, terms, np.stack(coef), np.stack(cov),
-                            {"omega": [0.45, 0.85]}, {"training": {"n_legs": 4}}, patches)
+                            {"omega": [0.45, 0.85]}, {"training": {"n_legs": 4}}, patches,
+                            default_cov_knots(CENTER, HALF))
 
 
 @pytest.fixture(scope="module")
@@ -82,7 +85,7 @@ def test_a_node_recovers_a_known_polynomial_and_its_noise(fitted):
         err = fitted.mean(_x6(x5, omega)) - _truth(x5, node)
         # noise ~1.5e-3 on 4000 rows, 45 terms: the mean's error is about 1.5e-3 * sqrt(45 / 4000) = 1.6e-4 RMS
         assert np.sqrt(np.mean(err**2)) < 4e-4
-    # the residual covariance A + s^2 B: variance 1e-6 * (1 + (s / 0.01)^2) on the diagonal
+    # the residual covariance on noise knots follows a variance 1e-6 * (1 + (s / 0.01)^2) on the diagonal
     for s in (0.0, 0.01, 0.02):
         assert np.allclose(np.diag(fitted.cov(0.6, s)), 1e-6 * (1 + (s / 0.01) ** 2), rtol=0.15)
 
@@ -173,9 +176,10 @@ def test_patched_fit_follows_a_kink_in_slip_that_one_polynomial_smooths():
 def test_a_format_3_file_is_read_as_one_patch(fitted, tmp_path):
     path = save_inverse_model(fitted, tmp_path / "m.npz")
     with np.load(path) as z:
-        doc = {k: z[k] for k in z.files if k != "patches"}
+        doc = {k: z[k] for k in z.files if k not in ("patches", "cov_knots")}
     doc["format_version"] = np.array(3)
     doc["coef"] = doc["coef"][:, 0]  # (M, T, d): one polynomial per node
+    doc["cov_coef"] = doc["cov_coef"][:, :2]  # (A, B) of A + s^2 B, as format 3 holds it
     np.savez(tmp_path / "v3.npz", **doc)
     old = load_inverse_model(tmp_path / "v3.npz")
     x = _x6(_draw(20, np.random.default_rng(11)), 0.66)
@@ -195,7 +199,7 @@ def test_file_round_trip_and_other_versions_refused(which, request, tmp_path):
     doc["format_version"] = np.array(2)
     old = tmp_path / "old.npz"
     np.savez(old, **doc)
-    with pytest.raises(InverseModelError, match=rf"old\.npz: format_version 2 is not supported.*reads 3, {FORMAT_VERSION}.*train_inverse"):
+    with pytest.raises(InverseModelError, match=rf"old\.npz: format_version 2 is not supported.*reads 3, 4, {FORMAT_VERSION}.*train_inverse"):
         load_inverse_model(old)
 
 
@@ -247,3 +251,96 @@ def test_whitener_whitens_the_model_covariance():
     np.testing.assert_array_equal(w, np.tril(w))
     z = np.random.default_rng(0).multivariate_normal(np.zeros(len(r)), r, size=200_000) @ w
     np.testing.assert_allclose(np.cov(z.T), np.eye(len(r)), atol=0.02)
+
+
+def test_cov_knot_weights_interpolate_in_s2_and_hold_beyond_the_last_knot():
+    knots = np.array([0.0, 0.005, 0.01, 0.02])
+    s = np.array([0.0, 0.005, 0.0075, 0.02, 0.05])
+    h = cov_knot_weights(s, knots)
+    assert h.shape == (5, 4) and np.all(h >= 0) and np.allclose(h.sum(axis=1), 1.0)
+    assert np.allclose(h[0], [1, 0, 0, 0]) and np.allclose(h[1], [0, 1, 0, 0])
+    a = (0.0075**2 - 0.005**2) / (0.01**2 - 0.005**2)  # linear in s^2 between the knots around it
+    assert np.allclose(h[2], [0, 1 - a, a, 0])
+    assert np.allclose(h[3], [0, 0, 0, 1]) and np.allclose(h[4], [0, 0, 0, 1])  # the last knot's beyond it
+    assert np.allclose(cov_knot_weights(0.0075, knots), h[2])
+
+
+def test_a_variance_that_rises_then_falls_with_noise_is_followed_and_stays_positive():
+    """A feature whose scatter first grows with the noise, then shrinks (a thresholded one saturating), with few
+    rows at the largest noises as in training: the knots follow it where rows are, and stay positive definite
+    and never overconfident where they are few."""
+    rng = np.random.default_rng(12)
+    n = 40000
+    x5 = _draw(n, rng)
+    x5[:, 4] = 0.02 * rng.beta(1.0, 4.0, n)  # most rows at low noise
+    var = 1e-6 * (1.0 + 3.0 * (x5[:, 4] / 0.02) - 3.9 * (x5[:, 4] / 0.02) ** 2)  # 1 at 0, 0.1 at s = 0.02
+    y = _truth(x5, 0) + rng.normal(0, 1, (n, 3)) * np.sqrt(var)[:, None]
+    coef, cov = fit_node(x5, y, node_terms(SCHEDULE), CENTER, HALF)
+    m = FeatureSurrogate(FEATS, NODES[:1], CENTER, HALF, np.vstack([np.column_stack([LO, HI]), [0.6, 0.6]]), 0.1,
+                         node_terms(SCHEDULE), coef[None], cov[None], {}, {}, None, default_cov_knots(CENTER, HALF))
+    for s in (0.0, 0.01, 0.02):
+        want = 1e-6 * (1.0 + 3.0 * (s / 0.02) - 3.9 * (s / 0.02) ** 2)
+        got = np.diag(m.cov(0.6, s))
+        assert np.linalg.eigvalsh(m.cov(0.6, s)).min() > 0.01 * want
+        if s < 0.02:  # where rows are plenty: the variance itself
+            assert np.allclose(got, want, rtol=0.35), (s, got, want)
+        else:  # at the last knot, ~160 rows: never below it by half (not overconfident); at worst the average
+            # of its knot's neighbourhood, where the variance is up to ten times larger
+            assert np.all((got > 0.5 * want) & (got < 10 * want)), (s, got, want)
+    assert np.allclose(m.cov(0.6, 0.05), m.cov(0.6, 0.02))  # beyond the last knot: the last knot's
+
+
+def test_bad_noise_knots_are_refused_by_name(fitted):
+    from dataclasses import replace
+    for bad in ([0.0], [0.001, 0.01], [0.0, 0.01, 0.005], [0.0, np.nan]):
+        with pytest.raises(InverseModelError, match="covariance knots"):
+            replace(fitted, cov_knots=np.array(bad))
+    with pytest.raises(InverseModelError, match="shapes do not agree"):
+        replace(fitted, cov_knots=np.array([0.0, 0.01, 0.02]))  # three knots for five matrices
+
+
+def test_a_format_4_file_keeps_its_straight_line_in_s2(fitted, tmp_path):
+    path = save_inverse_model(fitted, tmp_path / "m.npz")
+    with np.load(path) as z:
+        doc = {k: z[k] for k in z.files if k != "cov_knots"}
+    d = len(FEATS)
+    a, b = 1e-6 * np.eye(d), 1e-2 * np.eye(d)
+    doc["format_version"] = np.array(4)
+    doc["cov_coef"] = np.stack([np.stack([a, b])] * len(NODES))
+    np.savez(tmp_path / "v4.npz", **doc)
+    old = load_inverse_model(tmp_path / "v4.npz")
+    assert old.cov_knots is None
+    np.testing.assert_allclose(old.cov(0.6, 0.01), a + 0.01**2 * b, rtol=1e-12)
+
+
+def test_the_shipped_covariance_is_positive_definite_at_every_speed_and_trained_noise():
+    """No eigenvalue needs the floor of ``cov``: the knots' matrices are positive definite and their weights
+    non-negative (the format-4 line in s^2 went indefinite above 0.011 g of smoothed noise)."""
+    m = load_inverse_model()
+    assert m.cov_knots is not None and m.cov_knots[-1] == pytest.approx(m.center[4] + m.halfwidth[4])
+    for omega in np.geomspace(m.node_omegas[0], m.node_omegas[-1], 9):
+        for s in np.linspace(0.0, m.cov_knots[-1], 8):
+            h = cov_knot_weights(s, m.cov_knots)
+            raw = sum(w * np.tensordot(h, m.cov_coef[k], axes=1) for k, w in m.node_weights(omega))
+            ev = np.linalg.eigvalsh(0.5 * (raw + raw.T))
+            assert ev.min() > 1e-6 * ev.max(), (omega, s)
+
+
+@pytest.mark.parametrize("rate, noise", [(1000.0, 0.01), (200.0, 0.03)])
+def test_held_out_stances_whiten_to_the_number_of_features_even_at_the_noisiest_imu(rate, noise):
+    """Simulated stances over the covered domain at 0.6-0.66 rad/s: the mean squared whitened residual from
+    the shipped model is about the number of modelled features (14), at an ordinary IMU and at the corner of
+    the envelope (200 Hz, 0.03 g: about 2e6 with the format-4 covariance)."""
+    from slipest.features import INDEX
+    from slipest.inverse.simdata import draw_envelope, simulate_features
+    m = load_inverse_model()
+    env = {"slip": (0.0, 0.5), "kS": (500.0, 1500.0), "phiS": (0.1, 0.8), "dphi": (0.0, 0.35), "omega": (0.6, 0.66)}
+    x = draw_envelope(1500, np.random.default_rng(21), env, phid_min=0.1)
+    rows = simulate_features(x, rate, noise, np.random.default_rng(22))
+    f = m.observe(rows)
+    ok = np.all(np.isfinite(f), axis=1)
+    ns = rows[ok, INDEX["noise_smooth"]]
+    r = f[ok] - m.mean(np.column_stack([x[ok], ns]))
+    w = whitener(m.cov(0.63, float(np.median(ns))))
+    d2 = np.sum((r @ w) ** 2, axis=1)
+    assert 0.6 * len(m.features) < d2.mean() < 1.4 * len(m.features), d2.mean()

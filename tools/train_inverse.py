@@ -37,8 +37,8 @@ from slipest import __version__
 from slipest.features import INDEX
 from slipest.inverse.feature_inverse import FeatureInverse
 from slipest.inverse.simdata import ENVELOPE, NOISE_RANGE, PHID_MIN, RATE_RANGE, draw_envelope, draw_imu, simulate_features
-from slipest.inverse.surrogate import (VARIABLES, FeatureSurrogate, MODEL_FEATURES, check_patches, fit_node, node_terms,
-                                       one_patch, patch_weights, save_inverse_model)
+from slipest.inverse.surrogate import (VARIABLES, FeatureSurrogate, MODEL_FEATURES, check_patches, default_cov_knots,
+                                       fit_node, node_terms, one_patch, patch_weights, save_inverse_model)
 from slipest.model.params import StickSlipParams
 
 DEFAULT_OUT = Path(__file__).resolve().parents[1] / "slipest" / "data" / "inverse_model.npz"
@@ -200,7 +200,8 @@ def main(argv=None) -> int:
 
     def build(meta):
         return FeatureSurrogate(MODEL_FEATURES, node_omegas, center, halfwidth, ranges, PHID_MIN, terms,
-                                np.stack(coef), np.stack(cov_coef), covered, meta, patches)
+                                np.stack(coef), np.stack(cov_coef), covered, meta, patches,
+                                default_cov_knots(center, halfwidth))
 
     model = build(meta)
     save_inverse_model(model, args.out)  # (again below with the held-out figures): not lost if checking fails

@@ -15,8 +15,12 @@ normalised ``(slip, kS, phiS, dphi, noise_smooth)`` in the tensor Legendre
 basis, total degree :func:`node_terms` (high in the soil and slip, low in
 the noise), one polynomial per **slip patch** (``patches``: overlapping slip
 ranges, blended smoothly across each overlap by :func:`patch_weights`; the
-shipped model has one, docs/estimator.md says why), and
-``R_i(s) = A_i + s^2 B_i`` the covariance of the residuals
+shipped model has one, docs/estimator.md says why), and ``R_i(s)`` the
+covariance of the residuals, piecewise linear in ``s^2`` between **noise
+knots** (``cov_knots``, :func:`cov_knot_weights`; each knot's matrix
+positive definite, so ``R`` is everywhere; constant beyond the last knot,
+the largest smoothed noise trained on; a file of format 4 or before holds
+``R_i(s) = A_i + s^2 B_i``)
 (what the IMU noise leaves on the features and what a smooth law cannot
 follow: the oscillation's phase at the end of the stance jumps about with
 small parameter changes, so amplitude features scatter by about 30 % around
@@ -47,10 +51,13 @@ import numpy as np
 
 from slipest.features import FEATURE_NAMES
 
-#: Version of the inverse model file format (4: slip patches; 3, one patch, is still read; 1 and 2 are refused).
-FORMAT_VERSION = 4
+#: Version of the inverse model file format (5: the covariance on noise knots; 4: slip patches; 3, one patch, and
+#: 4 are still read; 1 and 2 are refused).
+FORMAT_VERSION = 5
 #: Versions :meth:`FeatureSurrogate.load` reads.
-READ_VERSIONS = (3, 4)
+READ_VERSIONS = (3, 4, 5)
+#: Noise knots of a fitted covariance (:func:`default_cov_knots`) [-].
+N_COV_KNOTS = 5
 #: Variables of a node's polynomial, in order (the leg speed selects the nodes).
 VARIABLES = ("slip", "kS", "phiS", "dphi", "noise_smooth")
 #: Features the shipped model uses: the smoothed, noise-referred ones (``delta_a``, the raw max - min, grows
@@ -146,6 +153,43 @@ def patch_weights(slip, patches) -> np.ndarray:
     return w
 
 
+def default_cov_knots(center, halfwidth, n: int = N_COV_KNOTS) -> np.ndarray:
+    """``n`` noise knots [g] evenly spaced from 0 to the largest smoothed noise of the normalisation
+    (``center[4] + halfwidth[4]``)."""
+    return np.linspace(0.0, float(center[4] + halfwidth[4]), n)
+
+
+def check_cov_knots(knots) -> np.ndarray:
+    """The noise knots ``(K,)`` [g] as floats, checked: at least two, the first 0, strictly increasing, finite."""
+    k = np.asarray(knots, dtype=float)
+    if k.ndim != 1 or k.size < 2 or not np.all(np.isfinite(k)) or k[0] != 0.0 or not np.all(np.diff(k) > 0):
+        raise ValueError(f"noise knots must be at least two finite values from 0, strictly increasing; "
+                         f"got {k.tolist()}")
+    return k
+
+
+def cov_knot_weights(noise_smooth, knots) -> np.ndarray:
+    """Weights ``(..., K)`` of the knots' matrices in the covariance at smoothed noise ``noise_smooth`` [g]: the
+    hat functions of ``knots**2`` at ``noise_smooth**2`` (linear interpolation in ``s^2``; beyond the last knot,
+    its matrix alone). They are >= 0 and sum to 1, so a covariance of positive definite knot matrices is."""
+    s2 = np.minimum(np.asarray(noise_smooth, dtype=float) ** 2, knots[-1] ** 2)
+    k2 = np.asarray(knots, dtype=float) ** 2
+    j = np.clip(np.searchsorted(k2, s2, side="right") - 1, 0, k2.size - 2)
+    a = (s2 - k2[j]) / (k2[j + 1] - k2[j])
+    out = np.zeros(np.shape(s2) + (k2.size,))
+    np.put_along_axis(out, j[..., None], (1.0 - a)[..., None], axis=-1)
+    np.put_along_axis(out, (j + 1)[..., None], a[..., None], axis=-1)
+    return out
+
+
+def nearest_positive_definite(m, floor: float = 1e-6) -> np.ndarray:
+    """The symmetric part of ``m`` with its eigenvalues raised to at least ``floor`` times the largest."""
+    m = 0.5 * (m + m.T)
+    ev, vec = np.linalg.eigh(m)
+    ev = np.maximum(ev, floor * max(float(ev.max()), 1e-300))
+    return (vec * ev) @ vec.T
+
+
 def patch_norm(center, halfwidth, patch) -> tuple[np.ndarray, np.ndarray]:
     """The normalisation of one slip patch ``[lo, hi]``: ``center``, ``halfwidth`` with the slip's replaced."""
     c = np.array(center, dtype=float)
@@ -154,13 +198,18 @@ def patch_norm(center, halfwidth, patch) -> tuple[np.ndarray, np.ndarray]:
     return c, h
 
 
-def fit_node(x5, y, terms: np.ndarray, center, halfwidth, patches=None,
+def fit_node(x5, y, terms: np.ndarray, center, halfwidth, patches=None, knots=None,
              progress=None) -> tuple[np.ndarray, np.ndarray]:
-    """One speed node's least-squares fit: ``(coef (P, T, d), cov_coef (2, d, d))`` from points ``x5`` ``(n, 5)``
+    """One speed node's least-squares fit: ``(coef (P, T, d), cov_coef (K, d, d))`` from points ``x5`` ``(n, 5)``
     (order of :data:`VARIABLES`, SI) and modelled features ``y`` ``(n, d)`` (rows with non-finite values are
     dropped). Each slip patch (``patches`` ``(P, 2)``; default :func:`one_patch`) is fitted on the rows it
     weighs (:func:`patch_weights` > 0: within its range, and beyond it for the first and last); the residual
-    covariance, of the blended mean, is ``A + s^2 B`` by least squares on the residuals' outer products."""
+    covariance, of the blended mean, is one matrix per noise knot (``knots`` ``(K,)`` [g]; default
+    :func:`default_cov_knots`): least squares of the residuals' outer products on :func:`cov_knot_weights`, kept
+    where it is at least a quarter of the knot's kernel average (the outer products averaged with those
+    weights, positive semi-definite by construction) in every direction, else that average (few rows near
+    the knot); each then made positive definite (:func:`nearest_positive_definite`). Raises ``ValueError``
+    when some knot has no rows near it."""
     x5 = np.asarray(x5, dtype=float)
     y = np.asarray(y, dtype=float)
     patches = one_patch(center, halfwidth) if patches is None else check_patches(patches)
@@ -192,11 +241,19 @@ def fit_node(x5, y, terms: np.ndarray, center, halfwidth, patches=None,
             rows = used[i : i + _CHUNK]
             fitted[rows] += weights[rows, j, None] * (legendre_design(u[i : i + _CHUNK], terms) @ coef[j])
     resid = y - fitted
-    s2 = x5[:, 4] ** 2
-    basis = np.column_stack([np.ones_like(s2), s2])
+    knots = default_cov_knots(center, halfwidth) if knots is None else check_cov_knots(knots)
+    basis = cov_knot_weights(x5[:, 4], knots)
     outer = np.einsum("nb,ni,nj->bij", basis, resid, resid)
-    cov_coef = np.linalg.solve(basis.T @ basis, outer.reshape(2, -1)).reshape(outer.shape)
-    return coef, cov_coef
+    gram = basis.T @ basis
+    if np.linalg.matrix_rank(gram) < knots.size:
+        raise ValueError(f"too few training rows near some noise knot of {knots.tolist()} to fit the covariance")
+    fitted_cov = np.linalg.solve(gram, outer.reshape(knots.size, -1)).reshape(outer.shape)
+    cov_coef = []
+    for ls, avg in zip(fitted_cov, outer / basis.sum(axis=0)[:, None, None]):
+        w = whitener(nearest_positive_definite(avg))  # ls >= avg / 4 in every direction: eig(W^T ls W) >= 1/4
+        ok = np.linalg.eigvalsh(w.T @ (0.5 * (ls + ls.T)) @ w).min() >= 0.25
+        cov_coef.append(nearest_positive_definite(ls if ok else avg))
+    return coef, np.stack(cov_coef)
 
 
 @dataclass(frozen=True)
@@ -211,11 +268,14 @@ class FeatureSurrogate:
     ``phiS - dphi``. terms: ``(T, 5)`` Legendre degrees per variable;
     coef: ``(M, P, T, d)``, one polynomial per node and slip patch, each
     patch normalising the slip over its own range (:func:`patch_norm`);
-    cov_coef: ``(M, 2, d, d)`` (``A_i``, ``B_i``;
-    feature units squared). covered: what the estimator promises, ``{name:
-    [lo, hi]}`` for slip, kS, phiS, dphi, omega, and ``"phid_min"``. meta:
-    provenance (free-form). patches: ``(P, 2)`` slip ranges of the patches
-    (:func:`check_patches`); None: one, the normalisation's slip range.
+    cov_coef: ``(M, K, d, d)``, the covariance at each noise knot (feature
+    units squared); with ``cov_knots`` None, ``(M, 2, d, d)``: ``A_i``,
+    ``B_i`` of ``A_i + s^2 B_i`` (format 4 and before). covered: what the
+    estimator promises, ``{name: [lo, hi]}`` for slip, kS, phiS, dphi,
+    omega, and ``"phid_min"``. meta: provenance (free-form). patches:
+    ``(P, 2)`` slip ranges of the patches (:func:`check_patches`); None: one,
+    the normalisation's slip range. cov_knots: ``(K,)`` smoothed noises [g]
+    of the covariance's knots (:func:`check_cov_knots`).
     """
 
     features: tuple
@@ -230,6 +290,7 @@ class FeatureSurrogate:
     covered: dict
     meta: dict
     patches: np.ndarray | None = None
+    cov_knots: np.ndarray | None = None
     #: Factor on the standard deviations the estimator reports with this model (1: its own posterior's; a
     #: calibrated rover model's is learnt from held-out testbed logs, :class:`slipest.rover.RoverSurrogate`).
     interval_scale: ClassVar[float] = 1.0
@@ -240,6 +301,12 @@ class FeatureSurrogate:
         except (ValueError, IndexError, TypeError) as exc:
             raise InverseModelError(f"inverse model slip patches: {exc}") from None
         object.__setattr__(self, "patches", patches)
+        if self.cov_knots is not None:
+            try:
+                object.__setattr__(self, "cov_knots", check_cov_knots(self.cov_knots))
+            except ValueError as exc:
+                raise InverseModelError(f"inverse model covariance knots: {exc}") from None
+        k = 2 if self.cov_knots is None else self.cov_knots.size
         d = len(self.features)
         m = self.node_omegas.size
         unknown = [f for f in self.features if f not in FEATURE_NAMES]
@@ -256,7 +323,7 @@ class FeatureSurrogate:
             raise InverseModelError(f"inverse model center and halfwidth must be {len(VARIABLES)} finite values "
                                     f"(halfwidth > 0), ranges {len(VARIABLES) + 1} pairs")
         p = patches.shape[0]
-        if self.coef.shape != (m, p, self.terms.shape[0], d) or self.cov_coef.shape != (m, 2, d, d):
+        if self.coef.shape != (m, p, self.terms.shape[0], d) or self.cov_coef.shape != (m, k, d, d):
             raise InverseModelError(
                 f"inverse model shapes do not agree: {m} nodes, {p} slip patches, {self.terms.shape[0]} terms, "
                 f"coef {self.coef.shape}, cov_coef {self.cov_coef.shape}, {d} features"
@@ -330,14 +397,15 @@ class FeatureSurrogate:
         return out.reshape(x.shape[:-1] + (d,))
 
     def cov(self, omega: float, noise_smooth: float) -> np.ndarray:
-        """``R`` ``(d, d)`` at leg speed ``omega`` [rad/s] and smoothed noise ``noise_smooth`` [g]
-        (made positive definite: eigenvalues at least 1e-6 of the largest)."""
-        s2 = float(noise_smooth) ** 2
-        r = sum(w * (self.cov_coef[k, 0] + s2 * self.cov_coef[k, 1]) for k, w in self.node_weights(omega))
-        r = 0.5 * (r + r.T)
-        ev, vec = np.linalg.eigh(r)
-        ev = np.maximum(ev, 1e-6 * max(float(ev.max()), 1e-300))
-        return (vec * ev) @ vec.T
+        """``R`` ``(d, d)`` at leg speed ``omega`` [rad/s] and smoothed noise ``noise_smooth`` [g] (beyond the
+        last noise knot, the last knot's; made positive definite: eigenvalues at least 1e-6 of the largest)."""
+        if self.cov_knots is None:
+            s2 = float(noise_smooth) ** 2
+            r = sum(w * (self.cov_coef[k, 0] + s2 * self.cov_coef[k, 1]) for k, w in self.node_weights(omega))
+        else:
+            h = cov_knot_weights(float(noise_smooth), self.cov_knots)
+            r = sum(w * np.tensordot(h, self.cov_coef[k], axes=1) for k, w in self.node_weights(omega))
+        return nearest_positive_definite(r)
 
     def mean_on_grid(self, slip_nodes, kS_levels, phiS_levels, dphi_levels, omega: float, noise_smooth: float) -> np.ndarray:
         """Mean features on a tensor grid at one leg speed [rad/s] and smoothed noise [g]:
@@ -372,7 +440,7 @@ class FeatureSurrogate:
                 fh, format_version=np.array(FORMAT_VERSION), variables=np.array(VARIABLES), features=np.array(self.features),
                 node_omegas=self.node_omegas, center=self.center, halfwidth=self.halfwidth, ranges=self.ranges,
                 phid_min=np.array(self.phid_min), terms=self.terms, coef=self.coef, cov_coef=self.cov_coef,
-                patches=self.patches,
+                patches=self.patches, cov_knots=np.zeros(0) if self.cov_knots is None else self.cov_knots,
                 covered=np.array(json.dumps(self.covered)), meta=np.array(json.dumps(self.meta, allow_nan=False)))
         return path
 
@@ -389,7 +457,8 @@ class FeatureSurrogate:
             raise InverseModelError(f"{name}: format_version {version!r} is not supported (this slipest reads "
                                     f"{', '.join(map(str, READ_VERSIONS))}); regenerate it with tools/train_inverse.py")
         keys = ("variables", "features", "node_omegas", "center", "halfwidth", "ranges", "phid_min", "terms", "coef",
-                "cov_coef", "covered", "meta") + (("patches",) if version >= 4 else ())
+                "cov_coef", "covered", "meta") + (("patches",) if version >= 4 else ()) \
+            + (("cov_knots",) if version >= 5 else ())
         missing = [k for k in keys if k not in d]
         if missing:
             raise InverseModelError(f"{name}: missing key(s) {missing}")
@@ -403,7 +472,8 @@ class FeatureSurrogate:
                        d["halfwidth"].astype(float), d["ranges"].astype(float), float(d["phid_min"]),
                        d["terms"].astype(np.int64), coef, d["cov_coef"].astype(float),
                        json.loads(str(d["covered"])), json.loads(str(d["meta"])),
-                       d["patches"].astype(float) if version >= 4 else None)
+                       d["patches"].astype(float) if version >= 4 else None,
+                       d["cov_knots"].astype(float) if version >= 5 and d["cov_knots"].size else None)
         except InverseModelError as exc:
             raise InverseModelError(f"{name}: {exc}") from None
         except (ValueError, TypeError) as exc:
@@ -449,6 +519,7 @@ def save_inverse_model(model: FeatureSurrogate, path) -> Path:
 
 
 __all__ = ["FORMAT_VERSION", "READ_VERSIONS", "VARIABLES", "MODEL_FEATURES", "InverseModelError", "node_terms",
-           "check_patches", "one_patch", "patch_weights", "patch_norm", "fit_node",
+           "check_patches", "one_patch", "patch_weights", "patch_norm", "N_COV_KNOTS", "default_cov_knots",
+           "check_cov_knots", "cov_knot_weights", "nearest_positive_definite", "fit_node",
            "legendre_design", "legendre_on_grid", "whitener",
            "FeatureSurrogate", "load_inverse_model", "save_inverse_model"]
