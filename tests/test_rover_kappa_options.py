@@ -21,10 +21,13 @@ def test_check_uncalibrated_sets_every_cycles_kappa_after_the_same_draw():
     assert (sc0.seed, sc0.rate, sc0.noise_g) == (sc1.seed, sc1.rate, sc1.noise_g)
 
 
-def test_check_uncalibrated_help_names_kappa(capsys):
+def test_check_uncalibrated_help_names_kappa_and_a_kappa_out_of_range_is_refused(capsys):
     with pytest.raises(SystemExit):
         check_uncalibrated.main(["--help"])
     assert "--kappa" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        check_uncalibrated.main(["--kappa", "1.5", "--cases", "1"])
+    assert "--kappa 1.5 must be in [0, 1]" in capsys.readouterr().err
 
 
 def test_bench_calibration_leg_only_rover_and_its_kappa():

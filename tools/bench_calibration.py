@@ -339,8 +339,10 @@ def main(argv=None) -> int:
             u, c = summarise(r["uncalibrated"]), summarise(r["calibrated"])
             log(f"    {truth}: dDa {100 * r['da_change']:.0f}%, calibrated in {r['calibrate_s']:.0f} s "
                 f"({r['chosen']}); uncalibrated {fmt(u)}; calibrated {fmt(c)}")
+    leg = f"kappa {args.kappa:g}" + (", the model's" if args.kappa == KAPPA else "")
     print(f"blind calibration benchmark, seed {args.seed}{' (official)' if args.seed == OFFICIAL_SEED else ''}: "
-          f"{len(truths)} rovers, 2 testbed logs (8 slip levels x 5 cycles) and {DRIVES} drives of {DRIVE_CYCLES} "
+          f"{len(truths)} rovers ({leg}), "
+          f"2 testbed logs (8 slip levels x 5 cycles) and {DRIVES} drives of {DRIVE_CYCLES} "
           f"cycles each; scored from cycle {SCORE_FROM + 1} of each drive")
     head = f"{'rover (hidden effect)':22s} {'dDa':>4s} {'calib':>6s}  {'uncalibrated: RMSE':>18s} {'cover':>6s} {'est':>6s}" \
            f"  {'calibrated: RMSE':>16s} {'cover':>6s} {'est':>6s}" + (f"  {'clean: RMSE':>11s}" if args.clean else "") \

@@ -30,6 +30,11 @@ no ``Da`` criterion). Each log is then estimated as a new user would
 The targets hold for the effect logs taken together (``every effect``);
 the lines after the table name the effects that miss them on their own.
 
+Each log's rover has a leg stiffness ``kappa`` drawn 0.25-0.40 (the model
+was trained at 0.3), so a row measures its effect and an uncalibrated leg;
+``--kappa 0.3`` sets every log's to the model's after the same draw, which
+measures the effect alone (docs/estimator.md, "The rover's leg").
+
 Seeds: develop on ``--seed 11`` (or any other); ``--seed 2024`` (default) is
 the official draw: never tune anything on it. Progress on stderr. The
 simulated logs can be cached (``--cache DIR``, about 1 MB a log) to rerun
@@ -181,6 +186,8 @@ def main(argv=None) -> int:
     ap.add_argument("--model", help="inverse model file (default: the shipped one)")
     ap.add_argument("--json", help="also write the figures and every case to this JSON file")
     args = ap.parse_args(argv)
+    if args.kappa is not None and not 0.0 <= args.kappa <= 1.0:
+        ap.error(f"--kappa {args.kappa} must be in [0, 1]")
     truths = [t.strip() for t in args.effects.split(",") if t.strip()]
     for t in truths:
         if t not in TRUTHS:
