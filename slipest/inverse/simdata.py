@@ -22,7 +22,7 @@ import math
 import numba
 import numpy as np
 
-from slipest.features import FEATURE_NAMES, N_GRID, _row_features
+from slipest.features import FEATURE_NAMES, N_GRID, _row_features, _smoothed_grid
 from slipest.model import kernel as K
 from slipest.model.params import StickSlipParams
 from slipest.model.stance import DEFAULT_DT, simulate_batch
@@ -57,12 +57,15 @@ def draw_imu(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
 
 
 @numba.njit(parallel=True, cache=True)
-def _sample_and_featurise(theta, az, n_steps, ok, omega, rate, noise, offset, seeds, g, half, out):
-    """Per stance ``b``: sample the waveform at ``rate[b]`` from phase ``offset[b]``, add N(0, noise[b]) [g], features."""
+def _sample_and_featurise(theta, az, n_steps, ok, omega, rate, noise, offset, seeds, g, half, out, grids):
+    """Per stance ``b``: sample the waveform at ``rate[b]`` from phase ``offset[b]``, add N(0, noise[b]) [g], features;
+    when ``grids`` has rows, also the smoothed phase grid the features are taken on (NaN for a failed stance)."""
     for b in numba.prange(theta.shape[0]):
         if not ok[b]:
             for j in range(out.shape[1]):
                 out[b, j] = np.nan
+            for j in range(grids.shape[1] if grids.shape[0] > 0 else 0):
+                grids[b, j] = np.nan
             continue
         m = n_steps[b]
         step = omega[b] / rate[b]
@@ -79,10 +82,15 @@ def _sample_and_featurise(theta, az, n_steps, ok, omega, rate, noise, offset, se
             ph[i] = p
             a[i] = (az[b, j] * (1.0 - w) + az[b, j + 1] * w) / g + 1.0 + np.random.normal() * noise[b]
         _row_features(ph, a, half, omega[b], noise[b], N_GRID, out[b])
+        if grids.shape[0] > 0:
+            y = np.empty(N_GRID)
+            _smoothed_grid(ph, a, half, omega[b], N_GRID, y)
+            for j in range(N_GRID):
+                grids[b, j] = y[j]
 
 
 def simulate_features(x, rate, noise, rng: np.random.Generator, base: StickSlipParams | None = None,
-                      chunk: int = 2000, dt: float = DEFAULT_DT, progress=None) -> np.ndarray:
+                      chunk: int = 2000, dt: float = DEFAULT_DT, progress=None, grids: bool = False):
     """Feature rows ``(n, len(FEATURE_NAMES))`` of ``n`` simulated stances.
 
     x: ``(n, 5)`` columns :data:`VARIABLES` (slip [-], kS [N/m], phiS, dphi
@@ -91,7 +99,11 @@ def simulate_features(x, rate, noise, rng: np.random.Generator, base: StickSlipP
     with its estimate); base: the other model parameters (default
     :class:`StickSlipParams`: the project's hardware and ``kappa``). Rows
     whose stance failed in the model are NaN. ``progress(k)``, when given,
-    is called with the number of stances done after each chunk.
+    is called with the number of stances done after each chunk. ``grids``:
+    also return the smoothed signal each row's features are taken on
+    (:data:`slipest.features.N_GRID` points over the feature window, in g
+    with gravity in; NaN rows for failed stances), for studying other
+    features: then the result is ``(features, grids)``.
     """
     x = np.asarray(x, dtype=float)
     n = len(x)
@@ -100,6 +112,7 @@ def simulate_features(x, rate, noise, rng: np.random.Generator, base: StickSlipP
     base = base or StickSlipParams()
     row = base.to_row()
     out = np.full((n, len(FEATURE_NAMES)), np.nan)
+    grid_out = np.full((n if grids else 0, N_GRID), np.nan)
     for k0 in range(0, n, chunk):
         sl = slice(k0, min(n, k0 + chunk))
         xs = x[sl]
@@ -113,10 +126,11 @@ def simulate_features(x, rate, noise, rng: np.random.Generator, base: StickSlipP
         offset = rng.uniform(0.0, 1.0, len(xs)) * xs[:, 4] / rate[sl]
         seeds = rng.integers(0, 2**31, len(xs))
         _sample_and_featurise(res.theta, res.az, res.n_steps, res.ok, np.ascontiguousarray(xs[:, 4]), rate[sl],
-                              noise[sl], offset, seeds, float(base.g), math.pi / base.nL, out[sl])
+                              noise[sl], offset, seeds, float(base.g), math.pi / base.nL, out[sl],
+                              grid_out[sl] if grids else grid_out)
         if progress:
             progress(len(xs))
-    return out
+    return (out, grid_out) if grids else out
 
 
 def draw_soils(n: int, rng: np.random.Generator, envelope: dict | None = None) -> np.ndarray:
