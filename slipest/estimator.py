@@ -98,9 +98,12 @@ DISCREPANCY_MEMORY = 0.9
 #: A cycle's best distance enters the running discrepancy as at least this fraction of ``fit_typical`` (one
 #: cycle fitted unusually well does not hide a discrepancy of the next ones).
 FIT_RATIO_MIN = 0.1
-#: Default misfit from which a cycle is not estimated (its best candidate ten times farther, squared, than the
-#: clean cycles' 99th percentile: widening cannot make such an estimate honest).
-DEFAULT_GROSS_MISFIT = 10.0
+#: Default misfit from which a cycle is not estimated: its best candidate 6.8 times farther, squared, than the
+#: clean cycles' 99th percentile (75.7 for the shipped 18-feature model: a squared whitened distance of about
+#: 515), where widening cannot make an estimate honest. An effect's distance grows less with the number of
+#: features than the clean percentile does, so the threshold keeps the distance of the 14-feature model's 10
+#: (docs/estimator.md, "four smooth features").
+DEFAULT_GROSS_MISFIT = 6.8
 #: Default share of ``soil_temper`` a cycle's soil update gets while the slip has not varied [-].
 DEFAULT_REPEAT_TEMPER = 0.3
 #: Spread (standard deviation) of the recent cycles' slips [-] from which they count as varied.

@@ -48,6 +48,13 @@ stick_mean     g      mean of ``az`` minus the stick level from the end of the
                       fewer than 4 bins): the hub's motion on the stuck foot
 omega          rad/s  mean leg speed over the window
 noise_smooth   g      standard deviation of the noise left on the smoothed signal
+spec_cent      Hz     power-weighted mean frequency of the window's signal (mean
+                      removed, Hann-windowed) over :data:`SPECTRAL_BAND`; 0 with
+                      no power there
+spec_bw        Hz     power-weighted spread of that frequency (same band)
+e_cent         rad    energy-weighted mean phase (energy as for ``energy_q*``);
+                      0 when no energy is above the noise
+e_spread       rad    energy-weighted spread of the phase about ``e_cent``
 =============  =====  =========================================================
 
 Gravity and bias: the IMU reports the specific force (``+g`` at rest) plus
@@ -64,7 +71,8 @@ difference of the samples of the rigid half of the cycle (phase in
 foot), or, when the cycle does not carry that half, of the first
 :data:`STICK_SPAN` rad of the window.
 
-One compiled routine (numba) computes a row, about 30-60 us a cycle.
+One compiled routine (numba) computes a row, about 45-90 us a cycle (the spectral moments, a
+discrete Fourier transform over their band, take half of it).
 """
 
 from __future__ import annotations
@@ -98,10 +106,14 @@ FEATURE_NAMES = (
     "stick_mean",
     "omega",
     "noise_smooth",
+    "spec_cent",
+    "spec_bw",
+    "e_cent",
+    "e_spread",
 )
 
 #: Unit of each feature, same order as :data:`FEATURE_NAMES`.
-FEATURE_UNITS = ("g",) * 8 + ("rad",) * 4 + ("Hz",) * 3 + ("-", "g", "g", "rad/s", "g")
+FEATURE_UNITS = ("g",) * 8 + ("rad",) * 4 + ("Hz",) * 3 + ("-", "g", "g", "rad/s", "g", "Hz", "Hz", "rad", "rad")
 
 #: Column index of each feature.
 INDEX = {name: j for j, name in enumerate(FEATURE_NAMES)}
@@ -140,6 +152,9 @@ _RMS_Q1, _ONSET, _ENERGY_Q10 = INDEX["rms_q1"], INDEX["onset"], INDEX["energy_q1
 _ZC_RATE, _OSC_FREQ, _RICE_FREQ = INDEX["zc_rate"], INDEX["osc_freq"], INDEX["rice_freq"]
 _N_CROSSINGS, _NOISE, _STICK_MEAN = INDEX["n_crossings"], INDEX["noise"], INDEX["stick_mean"]
 _OMEGA, _NOISE_SMOOTH = INDEX["omega"], INDEX["noise_smooth"]
+_SPEC_CENT, _E_CENT = INDEX["spec_cent"], INDEX["e_cent"]
+#: Frequency band of ``spec_cent`` and ``spec_bw`` [Hz].
+SPECTRAL_BAND = (1.5, 20.0)
 _ENERGY_TARGETS = (0.1, 0.5, 0.9)
 
 
@@ -306,8 +321,21 @@ def _stick_relative_features(y, sig_s, omega, half, out):
         out[_STICK_MEAN] = 0.0
     var_s = sig_s * sig_s
     etot = 0.0
+    e1 = 0.0
     for b in range(n_grid):
-        etot += max((y[b] - stick) ** 2 - var_s, 0.0)
+        e = max((y[b] - stick) ** 2 - var_s, 0.0)
+        etot += e
+        e1 += e * (b + 0.5) * dphase
+    if etot > 0.0:
+        cent = e1 / etot
+        e2 = 0.0
+        for b in range(n_grid):
+            e2 += max((y[b] - stick) ** 2 - var_s, 0.0) * ((b + 0.5) * dphase - cent) ** 2
+        out[_E_CENT] = cent
+        out[_E_CENT + 1] = math.sqrt(e2 / etot)
+    else:
+        out[_E_CENT] = 0.0
+        out[_E_CENT + 1] = 0.0
     for q in range(3):
         res = _ENERGY_TARGETS[q] * half
         if etot > 0.0:
@@ -364,6 +392,48 @@ def _mean_relative_features(y, sig_s, half, omega, out):
 
 
 @numba.njit(cache=True, inline="always")
+def _spectral_moments(y, dt, out):
+    """``spec_cent``, ``spec_bw`` [Hz]: power-weighted mean and spread of the frequency over
+    :data:`SPECTRAL_BAND` of the window's signal ``y`` (grid step ``dt`` [s]; its mean removed, Hann-windowed,
+    discrete Fourier transform at the grid's frequencies ``k / (n dt)``); 0 and 0 with no power in the band."""
+    n = y.size
+    mean = 0.0
+    for b in range(n):
+        mean += y[b]
+    mean /= n
+    x = np.empty(n)
+    for b in range(n):
+        x[b] = (y[b] - mean) * (0.5 - 0.5 * math.cos(2.0 * math.pi * b / (n - 1)))
+    k0 = int(math.ceil(SPECTRAL_BAND[0] * n * dt))
+    k1 = min(int(math.floor(SPECTRAL_BAND[1] * n * dt)), n // 2)
+    p0 = 0.0
+    p1 = 0.0
+    p2 = 0.0
+    for k in range(k0, k1 + 1):
+        step = 2.0 * math.pi * k / n
+        cs, sn = math.cos(step), math.sin(step)
+        c, s = 1.0, 0.0  # cos and sin of step * b, by rotation
+        re = 0.0
+        im = 0.0
+        for b in range(n):
+            re += x[b] * c
+            im -= x[b] * s
+            c, s = c * cs - s * sn, s * cs + c * sn
+        pw = re * re + im * im
+        f = k / (n * dt)
+        p0 += pw
+        p1 += pw * f
+        p2 += pw * f * f
+    if p0 > 0.0:
+        cent = p1 / p0
+        out[_SPEC_CENT] = cent
+        out[_SPEC_CENT + 1] = math.sqrt(max(p2 / p0 - cent * cent, 0.0))
+    else:
+        out[_SPEC_CENT] = 0.0
+        out[_SPEC_CENT + 1] = 0.0
+
+
+@numba.njit(cache=True, inline="always")
 def _rice_frequency(y, k_on, dt, sig_s):
     """``rms(d y/dt) / (2 pi rms(y))`` after the onset bin ``k_on`` (about the mean there) [Hz]; 0 without one,
     or when the signal there is within 3 smoothed-noise standard deviations."""
@@ -399,6 +469,7 @@ def _row_features(phase, a, half, omega, noise, n_grid, out):
     k_on = _stick_relative_features(y, sig_s, omega, half, out)
     _mean_relative_features(y, sig_s, half, omega, out)
     out[_RICE_FREQ] = _rice_frequency(y, k_on, half / n_grid / omega, sig_s)
+    _spectral_moments(y, half / n_grid / omega, out)
     out[_NOISE] = noise
     out[_OMEGA] = omega
     out[_NOISE_SMOOTH] = sig_s

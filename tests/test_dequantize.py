@@ -148,9 +148,11 @@ def test_the_estimator_on_a_coarse_encoder_gives_what_it_gives_on_a_fine_one_and
 
     fine_slip = {c: fine[c].slip for c in cyc}
     assert rms(deq, "slip", fine_slip) < 0.003  # measured 0.0002
-    assert rms(raw, "slip", fine_slip) > 0.01  # measured 0.047: what the staircase cost before
-    assert rms(deq, "dphi", {c: DPHI for c in cyc}) < 0.015  # measured 0.0085
-    assert rms(raw, "dphi", {c: DPHI for c in cyc}) > 0.03  # measured 0.047
+    assert rms(raw, "slip", fine_slip) > 0.01  # measured 0.037 (0.047 on the 14-feature model): the staircase's cost
+    deq_dphi = rms(deq, "dphi", {c: DPHI for c in cyc})
+    assert deq_dphi < 0.015  # measured 0.0079 (0.0085 on the 14-feature model)
+    # the staircase's cost in the soil: measured 0.025, three times the dequantised (0.047 on the 14-feature model)
+    assert rms(raw, "dphi", {c: DPHI for c in cyc}) > 2.0 * deq_dphi
     assert "encoder" in est.hints and "150" in est.hints["encoder"]
     assert est.counters["samples_interpolated"] > 0.9 * run.t.size
 

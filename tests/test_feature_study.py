@@ -1,4 +1,5 @@
-"""tools/feature_study.py: the candidate features mean what its docstring says, and a small study runs end to end."""
+"""The smooth moment features (spec_cent, spec_bw, e_cent, e_spread): what they mean, the compiled kernel equal to a
+plain numpy reference; tools/feature_study.py runs end to end."""
 
 import json
 import math
@@ -9,8 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from slipest.features import FEATURE_NAMES, N_GRID, STICK_FRACTION
+from slipest.features import FEATURE_NAMES, N_GRID, SPECTRAL_BAND, STICK_FRACTION, cycle_features
 from slipest.inverse.simdata import draw_envelope, simulate_features
+from slipest.units import G
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tools"))
@@ -19,19 +21,43 @@ import feature_study as FS  # noqa: E402
 HALF = math.pi / 4
 
 
-def _rows(n, noise_smooth=0.0):
-    f = np.zeros((n, len(FEATURE_NAMES)))
-    f[:, FEATURE_NAMES.index("noise_smooth")] = noise_smooth
-    return f
+def reference_moments(features, grids, omega, half):
+    """The moments by numpy (FFT) from the smoothed signal, as slipest.features documents them."""
+    g = np.asarray(grids, dtype=float)
+    n_grid = g.shape[1]
+    dphase = half / n_grid
+    phase = (np.arange(n_grid) + 0.5) * dphase
+    sig = features[:, FEATURE_NAMES.index("noise_smooth")]
+    n_stick = max(2, int(round(STICK_FRACTION * n_grid)))
+    e = np.maximum((g - g[:, :n_stick].mean(1, keepdims=True)) ** 2 - sig[:, None] ** 2, 0.0)
+    et = np.maximum(e.sum(1), 1e-300)
+    e_cent = (e * phase).sum(1) / et
+    e_spread = np.sqrt((e * (phase - e_cent[:, None]) ** 2).sum(1) / et)
+    power = np.abs(np.fft.rfft((g - g.mean(1, keepdims=True)) * np.hanning(n_grid), axis=1)) ** 2
+    freq = np.fft.rfftfreq(n_grid, dphase / omega)
+    band = (freq >= SPECTRAL_BAND[0]) & (freq <= SPECTRAL_BAND[1])
+    p, f = power[:, band], freq[band]
+    cent = (p * f).sum(1) / p.sum(1)
+    bw = np.sqrt((p * (f - cent[:, None]) ** 2).sum(1) / p.sum(1))
+    return {"e_cent": e_cent, "e_spread": e_spread, "spec_cent": cent, "spec_bw": bw}
+
+
+def _features_of_grids(grids, omega, noise_smooth=0.0):
+    """Feature rows of signals given directly on the phase grid (one sample per grid bin, noise given)."""
+    n_grid = grids.shape[1]
+    phase = (np.arange(n_grid) + 0.5) * (HALF / n_grid)
+    return np.stack([cycle_features(phase, row * G, omega=omega, noise=noise_smooth) for row in grids])
 
 
 def test_spectral_centroid_of_a_sine_is_its_frequency():
     omega = 0.63
     t = (np.arange(N_GRID) + 0.5) * (HALF / N_GRID) / omega  # seconds
     grids = np.stack([1.0 + 0.3 * np.sin(2 * np.pi * hz * t) for hz in (4.0, 7.0)])
-    c = FS.candidate_features(_rows(2), grids, omega, HALF)
-    assert c["spec_cent"] == pytest.approx([4.0, 7.0], abs=0.3)
-    assert np.all(c["spec_bw"] < 1.0)
+    f = _features_of_grids(grids, omega)
+    assert f[:, FEATURE_NAMES.index("spec_cent")] == pytest.approx([4.0, 7.0], abs=0.3)
+    assert np.all(f[:, FEATURE_NAMES.index("spec_bw")] < 1.0)
+    flat = _features_of_grids(np.ones((1, N_GRID)), omega)[0]
+    assert flat[FEATURE_NAMES.index("spec_cent")] == 0.0 and flat[FEATURE_NAMES.index("spec_bw")] == 0.0
 
 
 def test_energy_moments_follow_where_the_energy_is():
@@ -39,11 +65,12 @@ def test_energy_moments_follow_where_the_energy_is():
     g = np.ones((3, N_GRID))
     g[0, (phase > 0.5) & (phase < 0.52)] += 0.5  # a burst at 0.51 rad
     g[1, phase > 0.4] += 0.2 * np.sin(40 * phase[phase > 0.4])  # energy spread over 0.4-0.785 rad
-    c = FS.candidate_features(_rows(3, noise_smooth=0.01), g, 0.63, HALF)
-    assert c["e_cent"][0] == pytest.approx(0.51, abs=0.01)
-    assert c["e_spread"][0] < 0.02
-    assert 0.5 < c["e_cent"][1] < 0.7 and c["e_spread"][1] > 0.05
-    assert c["e_cent"][2] == 0.0 and c["e_spread"][2] == 0.0  # nothing above the noise
+    f = _features_of_grids(g, 0.63, noise_smooth=0.001)
+    cent, spread = f[:, FEATURE_NAMES.index("e_cent")], f[:, FEATURE_NAMES.index("e_spread")]
+    assert cent[0] == pytest.approx(0.51, abs=0.01)
+    assert spread[0] < 0.02
+    assert 0.5 < cent[1] < 0.7 and spread[1] > 0.05
+    assert cent[2] == 0.0 and spread[2] == 0.0  # nothing above the noise
 
 
 def test_simulated_grids_are_what_the_features_are_taken_on():
@@ -58,6 +85,17 @@ def test_simulated_grids_are_what_the_features_are_taken_on():
     assert ok.sum() > 150
     np.testing.assert_allclose(peak[ok], feats[ok, FEATURE_NAMES.index("peak_pos")], atol=1e-12)
     assert np.all(np.isnan(grids[~ok]))
+
+
+@pytest.mark.parametrize("omega, rate", [(0.3, 2000.0), (0.63, 1000.0), (1.2, 200.0)])
+def test_compiled_moments_equal_the_numpy_reference(omega, rate):
+    x = draw_envelope(150, np.random.default_rng(4))
+    x[:, 4] = omega
+    feats, grids = simulate_features(x, rate, 0.02, np.random.default_rng(8), grids=True)
+    ok = np.isfinite(feats[:, 0])
+    ref = reference_moments(feats[ok], grids[ok], omega, HALF)
+    for name, v in ref.items():
+        np.testing.assert_allclose(feats[ok, FEATURE_NAMES.index(name)], v, rtol=1e-9, atol=1e-12, err_msg=name)
 
 
 def test_a_small_study_runs_and_prints_every_set(tmp_path):

@@ -1,6 +1,7 @@
 """The feature surrogate's model: per-node Legendre fit, speed interpolation, grid evaluation, file format."""
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ from slipest.inverse.surrogate import (
     default_cov_knots,
     fit_node,
     load_inverse_model,
+    nearest_positive_definite,
     node_terms,
     patch_weights,
     save_inverse_model,
@@ -314,22 +316,26 @@ def test_a_format_4_file_keeps_its_straight_line_in_s2(fitted, tmp_path):
 
 
 def test_the_shipped_covariance_is_positive_definite_at_every_speed_and_trained_noise():
-    """No eigenvalue needs the floor of ``cov``: the knots' matrices are positive definite and their weights
-    non-negative (the format-4 line in s^2 went indefinite above 0.011 g of smoothed noise)."""
+    """No eigenvalue needs the floor of ``cov`` (taken in the features' own scales, on the correlation matrix):
+    the knots' matrices are positive definite and their weights non-negative (the format-4 line in s^2 went
+    indefinite above 0.011 g of smoothed noise)."""
     m = load_inverse_model()
     assert m.cov_knots is not None and m.cov_knots[-1] == pytest.approx(m.center[4] + m.halfwidth[4])
     for omega in np.geomspace(m.node_omegas[0], m.node_omegas[-1], 9):
         for s in np.linspace(0.0, m.cov_knots[-1], 8):
             h = cov_knot_weights(s, m.cov_knots)
             raw = sum(w * np.tensordot(h, m.cov_coef[k], axes=1) for k, w in m.node_weights(omega))
-            ev = np.linalg.eigvalsh(0.5 * (raw + raw.T))
+            raw = 0.5 * (raw + raw.T)
+            d = np.sqrt(np.diag(raw))
+            ev = np.linalg.eigvalsh(raw / np.outer(d, d))
             assert ev.min() > 1e-6 * ev.max(), (omega, s)
+            np.testing.assert_allclose(m.cov(omega, s), raw, rtol=1e-9, atol=0)  # the floor left it as it is
 
 
 @pytest.mark.parametrize("rate, noise", [(1000.0, 0.01), (200.0, 0.03)])
 def test_held_out_stances_whiten_to_the_number_of_features_even_at_the_noisiest_imu(rate, noise):
     """Simulated stances over the covered domain at 0.6-0.66 rad/s: the mean squared whitened residual from
-    the shipped model is about the number of modelled features (14), at an ordinary IMU and at the corner of
+    the shipped model is about the number of modelled features (18), at an ordinary IMU and at the corner of
     the envelope (200 Hz, 0.03 g: about 2e6 with the format-4 covariance)."""
     from slipest.features import INDEX
     from slipest.inverse.simdata import draw_envelope, simulate_features
@@ -344,3 +350,20 @@ def test_held_out_stances_whiten_to_the_number_of_features_even_at_the_noisiest_
     w = whitener(m.cov(0.63, float(np.median(ns))))
     d2 = np.sum((r @ w) ** 2, axis=1)
     assert 0.6 * len(m.features) < d2.mean() < 1.4 * len(m.features), d2.mean()
+
+
+def test_the_positive_definite_floor_keeps_small_variances_of_features_in_other_units():
+    """Features whose variances differ by 1e7 (rad^2 against Hz^2): a positive definite matrix comes back as it is,
+    and an indefinite one is mended in the features' own scales, every variance kept to within the floor."""
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(6, 6))
+    scale = np.diag([1e-4, 1e-3, 1.0, 10.0, 1e-2, 3.0])
+    m = scale @ (a @ a.T) @ scale
+    np.testing.assert_allclose(nearest_positive_definite(m), m, rtol=1e-9, atol=0)
+    bad = m.copy()
+    bad[0, 1] = bad[1, 0] = 2.0 * math.sqrt(m[0, 0] * m[1, 1])  # correlation 2: indefinite
+    fixed = nearest_positive_definite(bad)
+    d = np.sqrt(np.diag(fixed))
+    assert np.linalg.eigvalsh(fixed / np.outer(d, d)).min() > 0.0
+    np.testing.assert_allclose(np.diag(fixed)[2:], np.diag(m)[2:], rtol=0.5)
+    assert fixed[0, 0] < 1e-6  # the rad^2-sized variance is not raised to a floor set by the Hz^2 one

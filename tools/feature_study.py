@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Research: would other per-cycle features identify slip better when the soil is unknown?
 
-The shipped features scatter around any smooth law of (slip, soil) by a few
+Per-cycle features scatter around any smooth law of (slip, soil) by a few
 percent, and that scatter is deterministic (it is there at zero IMU noise):
 crossing counts, energy quantiles and the break-away bin move in steps as
 the parameters change (docs/estimator.md, "What limits the likelihood").
@@ -29,18 +29,13 @@ cycle of a soil seen at once (no filter, no soil change). Its figures
 rank feature sets; only a retrained model scored by ``tools/bench_accuracy.py``
 says what a change gives.
 
-Candidate features (computed from the smoothed signal the shipped features
-are taken on, :func:`slipest.inverse.simdata.simulate_features` with
-``grids=True``):
-
-* ``spec_cent`` [Hz], ``spec_bw`` [Hz]: power-weighted mean and spread of the
-  frequency of the window's signal (mean removed, Hann-windowed), over
-  1.5-20 Hz: smooth stand-ins for ``zc_rate`` and ``osc_freq``, which count
-  crossings;
-* ``e_cent`` [rad], ``e_spread`` [rad]: energy-weighted mean and spread of
-  the phase (energy as in ``energy_q*``: squared deviation from the stick
-  level less the smoothed noise variance): smooth stand-ins for the energy
-  quantiles.
+The sets: the 14 features the model had before the moments; those with the crossing counts (``zc_rate``,
+``osc_freq``) replaced by the spectral moments (``spec_cent``, ``spec_bw``); with the energy quantiles
+replaced by the energy moments (``e_cent``, ``e_spread``); and the shipped model's 18 (the 14 and the four
+moments). A new candidate is added to :mod:`slipest.features`
+first (:func:`slipest.inverse.simdata.simulate_features` with
+``grids=True`` gives the smoothed signal to prototype it on), then to a
+set here.
 
     python tools/feature_study.py                      # 1 kHz, 0.01 g, 0.63 rad/s, seed 0: about 2 min
     python tools/feature_study.py --omega 0.4 --rate 250 --noise 0.025
@@ -50,7 +45,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -60,61 +54,34 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from slipest.features import FEATURE_NAMES, N_GRID, STICK_FRACTION  # noqa: E402
+from slipest.features import FEATURE_NAMES  # noqa: E402
 from slipest.inverse.simdata import draw_envelope, simulate_features  # noqa: E402
-from slipest.inverse.surrogate import MODEL_FEATURES, legendre_design, node_terms  # noqa: E402
+from slipest.inverse.surrogate import MODEL_FEATURES, MOMENT_FEATURES, legendre_design, node_terms  # noqa: E402
 
 #: Normalisation of (slip, kS, phiS, dphi): the training envelope's centre and half-width.
 CENTER = np.array([0.275, 1050.0, 0.5, 0.2])
 HALFWIDTH = np.array([0.275, 650.0, 0.4, 0.2])
-#: Frequency band of the spectral candidates [Hz].
-SPECTRAL_BAND = (1.5, 20.0)
 #: The estimator's likelihood temper and the soil tempers compared.
 SLIP_TEMPER = 0.4
 SOIL_TEMPERS = (0.15, 0.4, 1.0)
 STEPPED_FREQ = ("zc_rate", "osc_freq")
 STEPPED_ENERGY = ("energy_q10", "energy_q50", "energy_q90")
+SMOOTH_FREQ = ("spec_cent", "spec_bw")
+SMOOTH_ENERGY = ("e_cent", "e_spread")
 #: The feature sets compared.
+#: The 14 features the model had before the moments.
+STEPPED_SET = [n for n in MODEL_FEATURES if n not in MOMENT_FEATURES]
 FEATURE_SETS = {
-    "shipped": list(MODEL_FEATURES),
-    "crossings -> spectrum": [n for n in MODEL_FEATURES if n not in STEPPED_FREQ] + ["spec_cent", "spec_bw"],
-    "energy quantiles -> moments": [n for n in MODEL_FEATURES if n not in STEPPED_ENERGY] + ["e_cent", "e_spread"],
-    "shipped + all four": list(MODEL_FEATURES) + ["spec_cent", "spec_bw", "e_cent", "e_spread"],
+    "the 14 before the moments": STEPPED_SET,
+    "crossings -> spectral moments": [n for n in STEPPED_SET if n not in STEPPED_FREQ] + list(SMOOTH_FREQ),
+    "quantiles -> energy moments": [n for n in STEPPED_SET if n not in STEPPED_ENERGY] + list(SMOOTH_ENERGY),
+    "shipped: the 14 + the moments (18)": list(MODEL_FEATURES),
 }
 
 
-def candidate_features(features: np.ndarray, grids: np.ndarray, omega: float, half: float) -> dict:
-    """The candidate features ``{name: (n,)}`` of rows ``features`` (``(n, len(FEATURE_NAMES))``) and their
-    smoothed signals ``grids`` (``(n, N_GRID)`` [g]) over a window of ``half`` [rad] at leg speed ``omega``
-    [rad/s] (module docstring). A row with no energy above the noise gets ``e_cent = e_spread = 0``; one with no
-    power in the band, ``spec_cent = spec_bw = 0``."""
-    g = np.asarray(grids, dtype=float)
-    n_grid = g.shape[1]
-    dphase = half / n_grid
-    phase = (np.arange(n_grid) + 0.5) * dphase
-    sig = features[:, FEATURE_NAMES.index("noise_smooth")]
-    n_stick = max(2, int(round(STICK_FRACTION * n_grid)))
-    dev = g - g[:, :n_stick].mean(1, keepdims=True)
-    e = np.maximum(dev**2 - sig[:, None] ** 2, 0.0)
-    et = e.sum(1)
-    has = et > 0
-    e_cent = np.where(has, (e * phase).sum(1) / np.where(has, et, 1.0), 0.0)
-    e_spread = np.where(has, np.sqrt((e * (phase - e_cent[:, None]) ** 2).sum(1) / np.where(has, et, 1.0)), 0.0)
-    power = np.abs(np.fft.rfft((g - g.mean(1, keepdims=True)) * np.hanning(n_grid), axis=1)) ** 2
-    freq = np.fft.rfftfreq(n_grid, dphase / omega)
-    band = (freq >= SPECTRAL_BAND[0]) & (freq <= SPECTRAL_BAND[1])
-    p, f = power[:, band], freq[band]
-    pt = p.sum(1)
-    ok = pt > 0
-    cent = np.where(ok, (p * f).sum(1) / np.where(ok, pt, 1.0), 0.0)
-    bw = np.where(ok, np.sqrt((p * (f - cent[:, None]) ** 2).sum(1) / np.where(ok, pt, 1.0)), 0.0)
-    return {"e_cent": e_cent, "e_spread": e_spread, "spec_cent": cent, "spec_bw": bw}
-
-
-def feature_table(features, grids, names, omega, half) -> np.ndarray:
-    """Columns ``names`` (shipped or candidate features) of the rows: ``(n, len(names))``."""
-    cand = candidate_features(features, grids, omega, half)
-    return np.column_stack([cand[k] if k in cand else features[:, FEATURE_NAMES.index(k)] for k in names])
+def feature_table(features, names) -> np.ndarray:
+    """Columns ``names`` of feature rows ``(n, len(FEATURE_NAMES))``: ``(n, len(names))``."""
+    return features[:, [FEATURE_NAMES.index(k) for k in names]]
 
 
 def fit_mean(x, y, degree):
@@ -152,13 +119,13 @@ def soil_grid():
     return np.array(cells), np.arange(0.0, 0.55, 0.02)
 
 
-def score_set(names, data, degree, n_slips, omega, half) -> dict:
+def score_set(names, data, degree, n_slips) -> dict:
     """Slip RMSE of one feature set over the runs (soil unknown per soil temper, soil known) and the R^2."""
-    (xtr, ftr, gtr), (xte, fte, gte), (xr, fr, gr) = data
-    ytr = feature_table(ftr, gtr, names, omega, half)
+    (xtr, ftr), (xte, fte), (xr, fr) = data
+    ytr = feature_table(ftr, names)
     ok = np.all(np.isfinite(ytr), 1)
     model = fit_mean(xtr[ok], ytr[ok], degree)
-    yte = feature_table(fte, gte, names, omega, half)
+    yte = feature_table(fte, names)
     ok = np.all(np.isfinite(yte), 1)
     resid = yte[ok] - predict(model, xte[ok])
     w = np.linalg.cholesky(np.linalg.inv(np.cov(resid.T)))
@@ -166,7 +133,7 @@ def score_set(names, data, degree, n_slips, omega, half) -> dict:
     cells, nodes = soil_grid()
     grid_x = np.array([(s, *c) for c in cells for s in nodes])
     mu = (predict(model, grid_x) @ w).reshape(len(cells), len(nodes), -1)
-    yr = feature_table(fr, gr, names, omega, half)
+    yr = feature_table(fr, names)
     errs = {t: [] for t in SOIL_TEMPERS}
     errs["known"] = []
     for s0 in range(0, len(xr), n_slips):
@@ -213,19 +180,17 @@ def main(argv=None) -> int:
         ap.error("--omega 0.25-1.3 rad/s, --rate 200-2000 Hz, --noise 0-0.05 g")
     t0 = time.time()
     rng = np.random.default_rng(args.seed)
-    half = math.pi / 4
     data = []
     bar = tqdm(total=args.train + args.test + args.soils * args.slips, desc="simulating stances", unit="stance",
                file=sys.stderr)
     for x in (draw_envelope(args.train, rng), draw_envelope(args.test, rng),
               draw_runs(args.soils, args.slips, args.omega, rng)):
         x[:, 4] = args.omega
-        f, g = simulate_features(x, args.rate, args.noise, rng, progress=bar.update, grids=True)
-        data.append((x, f, g))
+        data.append((x, simulate_features(x, args.rate, args.noise, rng, progress=bar.update)))
     bar.close()
     out = {}
     for label, names in tqdm(FEATURE_SETS.items(), desc="feature sets", file=sys.stderr):
-        out[label] = score_set(names, data, args.degree, args.slips, args.omega, half)
+        out[label] = score_set(names, data, args.degree, args.slips)
     print(f"slip RMSE by feature set: {args.omega:g} rad/s, {args.rate:g} Hz, {args.noise:g} g; {args.soils} soils x "
           f"{args.slips} slips, degree {args.degree}, seed {args.seed}; {time.time() - t0:.0f} s")
     head = "".join(f"  soil t={t:<5g}" for t in SOIL_TEMPERS)
@@ -233,9 +198,9 @@ def main(argv=None) -> int:
     for label, r in out.items():
         print(f"  {label:30s}" + "".join(f"  {r['rmse'][str(t)]:11.4f}" for t in SOIL_TEMPERS)
               + f"  {r['rmse']['known']:10.4f}")
-    cand = ("spec_cent", "spec_bw", "e_cent", "e_spread")
-    r2 = out["shipped + all four"]["r2"]
-    print("  R^2 of the means: " + ", ".join(f"{k} {r2[k]:.3f}" for k in STEPPED_FREQ + STEPPED_ENERGY + cand))
+    r2 = out["shipped: the 14 + the moments (18)"]["r2"]
+    print("  R^2 of the means: " + ", ".join(f"{k} {r2[k]:.3f}" for k in STEPPED_FREQ + STEPPED_ENERGY + SMOOTH_FREQ
+                                             + SMOOTH_ENERGY))
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))
     return 0

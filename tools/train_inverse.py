@@ -16,9 +16,9 @@ the best candidate's squared whitened distance on clean cycles
 ``slipest/data/inverse_model.npz`` (``--out`` to write elsewhere). The
 benchmarks draw with other seeds; nothing here looks at them.
 
-    python tools/train_inverse.py                      # ~40 min on 2 cores (simulation ~30, fit ~6, checks ~3)
+    python tools/train_inverse.py                      # 12-25 min on 2 cores (simulation 4-5, fit 6-13, checks 3)
     python tools/train_inverse.py --n-node 20000 --nodes 4 --schedule small   # quick, for trying things
-    python tools/train_inverse.py --rows rows.npz      # keep (or reuse) the simulated rows
+    python tools/train_inverse.py --rows rows.npz      # keep (or reuse) the simulated rows and their simulation time
     python tools/train_inverse.py --n-node 200000 --patches 0:0.33,0.22:0.55 --out patched.npz   # research, ~25 min
 """
 
@@ -34,7 +34,7 @@ import numpy as np
 from tqdm import tqdm
 
 from slipest import __version__
-from slipest.features import INDEX
+from slipest.features import FEATURE_NAMES, INDEX
 from slipest.inverse.feature_inverse import FeatureInverse
 from slipest.inverse.simdata import ENVELOPE, NOISE_RANGE, PHID_MIN, RATE_RANGE, draw_envelope, draw_imu, simulate_features
 from slipest.inverse.surrogate import (VARIABLES, FeatureSurrogate, MODEL_FEATURES, check_patches, default_cov_knots,
@@ -128,7 +128,8 @@ def main(argv=None) -> int:
                     "a grid table at its speed and noise, about 0.1 s)")
     ap.add_argument("--legs", type=int, default=4, help="legs of the wheel-leg the model is for (default 4)")
     ap.add_argument("--seed", type=int, default=777)
-    ap.add_argument("--rows", type=Path, help="an .npz of simulated rows: read if it exists, else written")
+    ap.add_argument("--rows", type=Path, help="an .npz of simulated rows: read if it exists (refused if "
+                    "its features are not slipest.features' own), else written")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = ap.parse_args(argv)
     if args.nodes < 2:
@@ -146,6 +147,11 @@ def main(argv=None) -> int:
         x_va, f_va = data["x_va"], data["f_va"]
         if not all(np.allclose(xn[:, 4], om) for xn, om in zip(x_nodes, node_omegas)):
             ap.error(f"{args.rows} was simulated at other speed nodes")
+        names = tuple(str(n) for n in data["features"]) if "features" in data else None
+        if names != FEATURE_NAMES:
+            ap.error(f"{args.rows} holds other features than slipest.features computes "
+                     f"({len(names) if names else 'unnamed'} columns against {len(FEATURE_NAMES)}): simulate again")
+        t_sim = float(data["simulate_s"])
         print(f"read {sum(map(len, x_nodes))} + {len(x_va)} simulated rows from {args.rows}", file=sys.stderr)
     else:
         seeds = np.random.SeedSequence(args.seed).spawn(args.nodes + 1)
@@ -162,10 +168,12 @@ def main(argv=None) -> int:
             x = draw_envelope(args.n_val, rng)
             x[:, 4] = rng.uniform(*covered["omega"], args.n_val)
             x_va, f_va = simulate(x, rng, base, bar)
+        t_sim = time.time() - t0
         if args.rows is not None:
             np.savez(args.rows, x_va=x_va, f_va=f_va, **{f"x{i}": v for i, v in enumerate(x_nodes)},
-                     **{f"f{i}": v for i, v in enumerate(f_nodes)})
-    t_sim = time.time() - t0
+                     **{f"f{i}": v for i, v in enumerate(f_nodes)}, features=np.array(FEATURE_NAMES),
+                     simulate_s=t_sim)
+    t_read = time.time()
 
     sig_hi = float(max(np.nanmax(xn[:, 5]) for xn in x_nodes))
     lo = np.array([ENVELOPE[v][0] for v in VARIABLES[:4]] + [0.0])
@@ -183,7 +191,7 @@ def main(argv=None) -> int:
                             progress=bar.update)
             coef.append(c)
             cov_coef.append(r)
-    t_fit = time.time() - t0 - t_sim
+    t_fit = time.time() - t_read
     meta = {
         "created_by": "tools/train_inverse.py " + " ".join(sys.argv[1:] if argv is None else argv),
         "created_utc": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),

@@ -60,11 +60,14 @@ READ_VERSIONS = (3, 4, 5)
 N_COV_KNOTS = 5
 #: Variables of a node's polynomial, in order (the leg speed selects the nodes).
 VARIABLES = ("slip", "kS", "phiS", "dphi", "noise_smooth")
+#: The smooth moments of the window (spectral and energy-weighted), integrals where the crossing counts and the
+#: energy quantiles step (docs/estimator.md, "four smooth features").
+MOMENT_FEATURES = ("spec_cent", "spec_bw", "e_cent", "e_spread")
 #: Features the shipped model uses: the smoothed, noise-referred ones (``delta_a``, the raw max - min, grows
 #: with the IMU's noise and rate; ``n_crossings`` repeats ``zc_rate``; ``noise``, ``omega``, ``noise_smooth``
-#: are inputs; ``stick_mean`` was too noisy to help).
+#: are inputs; ``stick_mean`` was too noisy to help), then :data:`MOMENT_FEATURES`.
 MODEL_FEATURES = ("peak_pos", "peak_neg", "rms", "rms_q1", "rms_q2", "rms_q3", "rms_q4", "onset", "energy_q10",
-                  "energy_q50", "energy_q90", "zc_rate", "osc_freq", "rice_freq")
+                  "energy_q50", "energy_q90", "zc_rate", "osc_freq", "rice_freq") + MOMENT_FEATURES
 
 #: Rows per block when building design matrices [-].
 _CHUNK = 20000
@@ -183,11 +186,17 @@ def cov_knot_weights(noise_smooth, knots) -> np.ndarray:
 
 
 def nearest_positive_definite(m, floor: float = 1e-6) -> np.ndarray:
-    """The symmetric part of ``m`` with its eigenvalues raised to at least ``floor`` times the largest."""
+    """The symmetric part of ``m`` made positive definite in the features' own scales: with ``D`` its diagonal
+    (floored at ``floor`` times the largest), the eigenvalues of ``D^-1/2 m D^-1/2`` raised to at least ``floor``
+    times the largest. Features in different units (variances from 1e-6 to 10) keep their small but real
+    variances, which a floor on the eigenvalues of ``m`` itself would inflate."""
     m = 0.5 * (m + m.T)
-    ev, vec = np.linalg.eigh(m)
+    d = np.diag(m).copy()
+    d = np.maximum(d, floor * max(float(d.max()), 1e-300))
+    s = 1.0 / np.sqrt(d)
+    ev, vec = np.linalg.eigh(m * s[:, None] * s[None, :])
     ev = np.maximum(ev, floor * max(float(ev.max()), 1e-300))
-    return (vec * ev) @ vec.T
+    return ((vec * ev) @ vec.T) / s[:, None] / s[None, :]
 
 
 def patch_norm(center, halfwidth, patch) -> tuple[np.ndarray, np.ndarray]:
@@ -398,7 +407,8 @@ class FeatureSurrogate:
 
     def cov(self, omega: float, noise_smooth: float) -> np.ndarray:
         """``R`` ``(d, d)`` at leg speed ``omega`` [rad/s] and smoothed noise ``noise_smooth`` [g] (beyond the
-        last noise knot, the last knot's; made positive definite: eigenvalues at least 1e-6 of the largest)."""
+        last noise knot, the last knot's; made positive definite in the features' scales,
+        :func:`nearest_positive_definite`)."""
         if self.cov_knots is None:
             s2 = float(noise_smooth) ** 2
             r = sum(w * (self.cov_coef[k, 0] + s2 * self.cov_coef[k, 1]) for k, w in self.node_weights(omega))
@@ -518,7 +528,8 @@ def save_inverse_model(model: FeatureSurrogate, path) -> Path:
     return model.save(path)
 
 
-__all__ = ["FORMAT_VERSION", "READ_VERSIONS", "VARIABLES", "MODEL_FEATURES", "InverseModelError", "node_terms",
+__all__ = ["FORMAT_VERSION", "READ_VERSIONS", "VARIABLES", "MODEL_FEATURES", "MOMENT_FEATURES", "InverseModelError",
+           "node_terms",
            "check_patches", "one_patch", "patch_weights", "patch_norm", "N_COV_KNOTS", "default_cov_knots",
            "check_cov_knots", "cov_knot_weights", "nearest_positive_definite", "fit_node",
            "legendre_design", "legendre_on_grid", "whitener",

@@ -1,0 +1,45 @@
+"""tools/train_inverse.py --rows: simulated rows kept with their features' names and simulation time, reused to
+the bit, and refused when slipest.features computes other features than the file holds."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from slipest.features import FEATURE_NAMES
+from slipest.inverse.surrogate import load_inverse_model
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+import train_inverse  # noqa: E402
+
+TINY = ["--nodes", "2", "--span", "0.57", "0.69", "--n-node", "1500", "--schedule", "tiny", "--n-val", "60",
+        "--n-check", "5"]
+
+
+def test_rows_are_kept_reused_and_refused_when_the_features_differ(tmp_path, capsys):
+    rows = tmp_path / "rows.npz"
+    assert train_inverse.main(TINY + ["--rows", str(rows), "--out", str(tmp_path / "a.npz")]) == 0
+    kept = np.load(rows)
+    assert tuple(str(n) for n in kept["features"]) == FEATURE_NAMES
+    assert kept["f0"].shape[1] == len(FEATURE_NAMES) and float(kept["simulate_s"]) > 0.0
+
+    assert train_inverse.main(TINY + ["--rows", str(rows), "--out", str(tmp_path / "b.npz")]) == 0
+    a, b = load_inverse_model(tmp_path / "a.npz"), load_inverse_model(tmp_path / "b.npz")
+    np.testing.assert_array_equal(a.coef, b.coef)
+    np.testing.assert_array_equal(a.cov_coef, b.cov_coef)
+    # the reused file's simulation time is the one it was simulated in, not the time it took to read it
+    assert b.meta["training"]["simulate_s"] == round(float(kept["simulate_s"]))
+    capsys.readouterr()
+
+    # rows of an older feature set (one column fewer, no names) are refused by name, not misread
+    old = tmp_path / "old.npz"
+    data = {k: kept[k] for k in kept.files if k not in ("features", "simulate_s")}
+    data = {k: (v[:, :-1] if k.startswith("f") else v) for k, v in data.items()}
+    np.savez(old, **data)
+    with pytest.raises(SystemExit) as e:
+        train_inverse.main(TINY + ["--rows", str(old), "--out", str(tmp_path / "c.npz")])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "old.npz holds other features" in err and "simulate again" in err
+    assert not (tmp_path / "c.npz").exists()
