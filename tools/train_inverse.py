@@ -16,7 +16,7 @@ the best candidate's squared whitened distance on clean cycles
 ``slipest/data/inverse_model.npz`` (``--out`` to write elsewhere). The
 benchmarks draw with other seeds; nothing here looks at them.
 
-    python tools/train_inverse.py                      # 12-25 min on 2 cores (simulation 4-5, fit 6-13, checks 3)
+    python tools/train_inverse.py                      # 18-30 min on 2 cores (simulation 4-6, fit 9-13, checks 3-4)
     python tools/train_inverse.py --n-node 20000 --nodes 4 --schedule small   # quick, for trying things
     python tools/train_inverse.py --rows rows.npz      # keep (or reuse) the simulated rows and their simulation time
     python tools/train_inverse.py --n-node 200000 --patches 0:0.33,0.22:0.55 --out patched.npz   # research, ~25 min
