@@ -64,13 +64,18 @@ def test_rover_surrogate_adds_the_discrepancy_and_the_extra_covariance():
     np.testing.assert_allclose(r.cov(0.63, 0.004), m.cov(0.63, 0.004) + q, rtol=1e-12)
 
 
+def _no_extra(model):
+    """A zero extra covariance of the model's features."""
+    return np.zeros((len(model.features),) * 2)
+
+
 def test_a_zero_correction_gives_the_shipped_estimates():
     """The rover model with nothing learnt and the shipped model: one estimator, the same estimates."""
     from slipest.estimator import SoilSlipEstimator
     from slipest.inverse.simdata import simulate_features
 
     m = load_inverse_model()
-    zero = RoverSurrogate.of(m, Discrepancy.zero(m.features, m.center[:4], m.halfwidth[:4]), np.zeros((len(m.features),) * 2))
+    zero = RoverSurrogate.of(m, Discrepancy.zero(m.features, m.center[:4], m.halfwidth[:4]), _no_extra(m))
     x = np.column_stack([np.linspace(0.05, 0.45, 6), np.full(6, 900.0), np.full(6, 0.5), np.full(6, 0.15),
                          np.full(6, 0.63)])
     rows = simulate_features(x, 1000.0, 0.01, np.random.default_rng(4))
@@ -89,7 +94,7 @@ def test_a_rover_models_interval_scale_widens_every_reported_std_and_nothing_els
     from slipest.inverse.simdata import simulate_features
 
     m = load_inverse_model()
-    zero = RoverSurrogate.of(m, Discrepancy.zero(m.features, m.center[:4], m.halfwidth[:4]), np.zeros((len(m.features),) * 2))
+    zero = RoverSurrogate.of(m, Discrepancy.zero(m.features, m.center[:4], m.halfwidth[:4]), _no_extra(m))
     wide = load_rover(save_rover(replace(zero, interval_scale=1.7), {}, tmp_path / "rover.json"))
     assert wide.interval_scale == 1.7 and m.interval_scale == 1.0
     x = np.column_stack([np.linspace(0.05, 0.45, 6), np.full(6, 900.0), np.full(6, 0.5), np.full(6, 0.15),
@@ -306,7 +311,7 @@ def test_a_learnt_disturbance_is_removed_from_the_samples_before_the_features(tm
     m = load_inverse_model()
     phases = np.linspace(-math.pi / 4, math.pi / 4, 250, endpoint=False) + math.pi / 4 / 250
     wave = 3.0 * np.exp(-np.clip(phases, 0, None) / 0.2) * np.sin(40 * phases) * (phases >= 0)
-    rover = RoverSurrogate.of(m, Discrepancy.zero(m.features, m.center[:4], m.halfwidth[:4]), np.zeros((len(m.features),) * 2),
+    rover = RoverSurrogate.of(m, Discrepancy.zero(m.features, m.center[:4], m.halfwidth[:4]), _no_extra(m),
                               disturbance={"phase": phases.tolist(), "az": wave.tolist()})
     path = save_rover(rover, {}, tmp_path / "rover.json")
     loaded = load_rover(path)
@@ -473,8 +478,8 @@ def test_an_encoder_offset_is_removed_from_theta_before_the_cycles_are_cut(tmp_p
 
     m = load_inverse_model()
     zero = Discrepancy.zero(m.features, m.center[:4], m.halfwidth[:4])
-    plain = RoverSurrogate.of(m, zero, np.zeros((len(m.features),) * 2))
-    rover = RoverSurrogate.of(m, zero, np.zeros((len(m.features),) * 2), angle_offset=0.15)
+    plain = RoverSurrogate.of(m, zero, _no_extra(m))
+    rover = RoverSurrogate.of(m, zero, _no_extra(m), angle_offset=0.15)
     loaded = load_rover(save_rover(rover, {}, tmp_path / "rover.json"))
     assert loaded.angle_offset == 0.15
     s = simulate_stream(Scenario.per_cycle(StickSlipParams(kS=900.0, phiS=0.55, phiD=0.35),
