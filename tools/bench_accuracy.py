@@ -15,8 +15,9 @@ changes. Draws (all uniform):
 * the IMU of each run: one of the ``--conditions`` (rate [Hz] : noise [g]),
   every condition getting the same runs.
 
-Reported per condition, and per leg-speed band and soil range (``old
-range``: phiD <= 0.4 rad, what the single-speed model covered): slip RMSE,
+Reported per condition, and per leg-speed band, soil stiffness band and soil
+range (``old range``: phiD <= 0.4 rad, what the single-speed model
+covered): slip RMSE,
 bias and the share of truths inside the 95 % intervals (``+-1.96 std``),
 dphi RMSE and coverage, over the cycles from the ``--from-cycle``-th (10th)
 after the soil last changed; and the share of all cycles that were
@@ -52,6 +53,8 @@ from slipest.online import ESTIMATED, SlipEstimator
 DOMAIN = {"kS": (500.0, 1500.0), "phiD": (0.10, 0.80), "dphi": (0.0, 0.35), "phiS_max": 0.80, "slip": (0.0, 0.5),
           "omega": (0.35, 1.1)}
 SPEED_BANDS = ((0.35, 0.55), (0.55, 0.8), (0.8, 1.1))
+#: Soil stiffness bands [N/m] (soft soils are where soil and slip are hardest to tell apart: docs/estimator.md).
+KS_BANDS = ((500.0, 800.0), (800.0, 1100.0), (1100.0, 1500.0))
 OLD_PHID_MAX = 0.4
 
 
@@ -126,7 +129,7 @@ def run_one(run: dict, rate: float, noise: float, inverse: FeatureInverse, model
     for _ in est.iter_estimates(chunks):
         pass
     rows.update(quality=quality, true_slip=run["slip"], true_dphi=run["phiS"] - run["phiD"], omega=run["omega"],
-                phiD=run["phiD"], since=run["since"], noise=est.noise_estimate, repaired=repaired)
+                kS=run["kS"], phiD=run["phiD"], since=run["since"], noise=est.noise_estimate, repaired=repaired)
     return rows
 
 
@@ -228,6 +231,9 @@ def main(argv=None) -> int:
             for lo, hi in SPEED_BANDS:
                 groups[f"speed {lo:g}-{hi:g} rad/s"] = figures(
                     rows, lambda c, lo=lo, hi=hi: (c["omega"] >= lo) & (c["omega"] < hi), args.from_cycle)
+            for lo, hi in KS_BANDS:
+                groups[f"kS {lo:g}-{hi:g} N/m"] = figures(
+                    rows, lambda c, lo=lo, hi=hi: (c["kS"] >= lo) & (c["kS"] < hi), args.from_cycle)
             groups["steady-speed runs"] = figures(rows[0::2], lambda c: np.ones(c["since"].size, bool), args.from_cycle)
             groups["changing-speed runs"] = figures(rows[1::2], lambda c: np.ones(c["since"].size, bool), args.from_cycle)
             groups[f"soils phiD <= {OLD_PHID_MAX} (old range)"] = figures(
