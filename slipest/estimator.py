@@ -36,8 +36,8 @@ persistent model error. The likelihood's variance is widened by the larger
 of the two, so data the model does not explain get wide intervals.
 
 Limits: the model's geometry and covered leg speeds (``model_legs``,
-``omega_range``); slip 0-0.5 and the soil grid (:meth:`SoilGrid.default`). One cycle step takes about 0.5-0.8 ms
-(compiled; :meth:`SoilSlipEstimator.prefetch` warms its 10 MB table first).
+``omega_range``); slip 0-0.5 and the soil grid (:meth:`SoilGrid.default`). One cycle step takes about 0.7 ms
+(compiled; :meth:`SoilSlipEstimator.prefetch` warms its 6 MB table first).
 Why it is built this way, and what was tried: ``docs/estimator.md``.
 
 Units: slip [-], kS [N/m], phiS, phiD, dphi [rad].
@@ -147,12 +147,13 @@ def slip_spread_weight(moments, slip, repeat_temper):
 
 @numba.njit(cache=True, fastmath=True)
 def _cycle_step(w, prior, hazard, soil_temper, repeat_temper, moments, forget, cutoff, sharpen, node_width, scale,
-                fit_level, floor, gross, table, fw, lp, nodes, node_quant, ref_k, ref_a, skip, summary_x, summary_q,
+                fit_level, floor, gross, table, tstep, fw, lp, nodes, node_quant, ref_k, ref_a, skip, summary_x, summary_q,
                 dmat, f32s, f64s, sel, ps, out):
     """One cycle of the grid filter, in place on the weights ``w`` (the soil posterior over the cells).
 
     predict (hazard mixing with the prior), cell likelihoods on the slip
-    nodes ``nodes`` [-] (``table``: columnar ``(D, K, S)``; ``lp``: their
+    nodes ``nodes`` [-] (``table``, ``tstep``: columnar ``(D, K, S)`` counts and their step,
+    :class:`~slipest.inverse.grid.Table`; ``lp``: their
     log prior; ``node_width``: their spacing [-]; ``scale``: the slip
     tempering; ``fit_level``, ``floor``: the misfit level and the widening
     floor of :func:`grid_loglik`), slip
@@ -184,7 +185,7 @@ def _cycle_step(w, prior, hazard, soil_temper, repeat_temper, moments, forget, c
     S = w.size
     lc = f64s[0]  # cell log-likelihoods, then the update's
     lw = f64s[1]  # log weights after predict
-    best, misfit = grid_loglik(table, fw, lp, node_width, scale, fit_level, dmat, lc, f32s[:2], floor)
+    best, misfit = grid_loglik(table, tstep, fw, lp, node_width, scale, fit_level, dmat, lc, f32s[:2], floor)
     top = -np.inf
     for s in range(S):
         if lc[s] > top:
@@ -428,7 +429,7 @@ class SoilSlipEstimator(CycleEstimator):
     def prefetch(self, omega: float | None = None, noise_smooth: float | None = None) -> None:
         """Get ready for the next cycle: build its table if its leg speed [rad/s] and smoothed noise [g] (when
         known) fall in a new bin (about 0.1 s), then bring what the cycle step reads (the table, the weights,
-        scratch: about 11 MB) into the CPU caches. Call it shortly before a cycle closes
+        scratch: about 7 MB) into the CPU caches. Call it shortly before a cycle closes
         (:class:`~slipest.online.SlipEstimator` does): the step then waits less on memory. Changes nothing else."""
         if self._known:
             return
@@ -443,7 +444,7 @@ class SoilSlipEstimator(CycleEstimator):
         and ``self._fw``; returns the ``out`` row of :func:`_cycle_step`."""
         _cycle_step(w, self._prior, hazard, self.soil_temper, self.repeat_temper, moments, self.forget, SLIP_CUTOFF,
                     self.soil_sharpen, self._node_width, self.slip_temper, self.fit_level, floor, self.gross_misfit,
-                    self._table.columnar, self._fw, self._lp, self._nodes, self._node_quant, ref_k, ref_a, skip,
+                    self._table.columnar, self._table.step, self._fw, self._lp, self._nodes, self._node_quant, ref_k, ref_a, skip,
                     self._summary_x, self._summary_q, self._dmat, self._f32s, self._f64s, self._sel, self._ps,
                     self._out)
         return self._out

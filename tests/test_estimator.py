@@ -275,7 +275,7 @@ def test_compiled_whitening_gives_the_mahalanobis_distance(change_stream):
             kS, phiS, phiD = cells[c]
             mu = model.mean([nodes[k], kS, phiS, phiS - phiD, table.omega, table.noise_smooth])
             r = model.observe(f) - mu
-            d2 = float(np.sum((fw.astype(float) - table.columnar[:, k, c]) ** 2))
+            d2 = float(np.sum((fw.astype(float) - table.values()[:, k, c]) ** 2))
             assert d2 == pytest.approx(float(r @ ri @ r), rel=1e-3, abs=1e-3)
     bad = feats[0].copy()
     bad[est._cols[0]] = np.nan

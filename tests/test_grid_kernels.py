@@ -7,11 +7,12 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from slipest.inverse.grid import quantise
 from slipest.inverse.grid_kernels import _NO_REASSOC, grid_loglik
 
 
 @numba.njit(fastmath=_NO_REASSOC)
-def _distances_one_coordinate_a_pass(tc, fw, dmat):
+def _distances_one_coordinate_a_pass(tc, tstep, fw, dmat):
     """The squared distances as first written: one pass over the row per coordinate, in order."""
     D, K, S = tc.shape
     for k in range(K):
@@ -19,7 +20,7 @@ def _distances_one_coordinate_a_pass(tc, fw, dmat):
             dmat[k, s] = np.float32(0.0)
         for j in range(D):
             for s in range(S):
-                e = tc[j, k, s] - fw[j]
+                e = tstep[j] * np.float32(tc[j, k, s]) - fw[j]
                 dmat[k, s] += e * e
 
 
@@ -30,20 +31,40 @@ def test_grid_loglik_distances_equal_the_one_coordinate_sum(D, K, S, seed, sprea
     those of one coordinate a pass (the sums keep their order), for any number of coordinates (remainders
     included); the best distance is their minimum; the cell log-likelihoods match the float64 formula."""
     rng = np.random.default_rng(seed)
-    tc = (rng.normal(0.0, spread, (D, K, S))).astype(np.float32)
+    tc, tstep = quantise(rng.normal(0.0, spread, (D, K, S)))
     fw = rng.normal(0.0, spread, D).astype(np.float32)
     lp = np.where(np.arange(K) % 3 == 2, -4.0, 0.0).astype(np.float32)
     dmat = np.empty((K, S), dtype=np.float32)
     lc = np.empty(S)
-    best, misfit = grid_loglik(tc, fw, lp, 0.02, 0.4, math.inf, dmat, lc, np.empty((2, S), dtype=np.float32))
+    best, misfit = grid_loglik(tc, tstep, fw, lp, 0.02, 0.4, math.inf, dmat, lc, np.empty((2, S), dtype=np.float32))
     ref = np.empty((K, S), dtype=np.float32)
-    _distances_one_coordinate_a_pass(tc, fw, ref)
+    _distances_one_coordinate_a_pass(tc, tstep, fw, ref)
     assert best == ref.min() and misfit == 1.0
     d = -0.5 * 0.4 * ref.astype(float) + lp[:, None]  # dmat now holds these (float32)
     np.testing.assert_allclose(dmat, d, rtol=1e-6, atol=1e-5)
     top = d.max(axis=0)
     expect = top + np.log(0.02 * np.exp(d - top).sum(axis=0))
     np.testing.assert_allclose(lc, expect, rtol=0, atol=0.02)  # fexp's error (grid_kernels docstring)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(1, 6), st.integers(1, 4), st.integers(1, 40), st.integers(0, 2**32 - 1),
+       st.floats(1e-3, 300.0), st.floats(-50.0, 50.0))
+def test_a_quantised_table_holds_its_values_within_half_a_step(D, K, S, seed, spread, shift):
+    """quantise: int16 counts of one step per coordinate, the largest |value| over 32767, every value within
+    half a step (a float32 rounding more); a coordinate of zeros keeps a usable step."""
+    rng = np.random.default_rng(seed)
+    values = rng.normal(shift, spread, (D, K, S))
+    values[0, 0, 0] = 0.0
+    counts, step = quantise(values)
+    assert counts.dtype == np.int16 and step.dtype == np.float32 and counts.flags.c_contiguous
+    top = np.abs(values).max(axis=(1, 2))
+    np.testing.assert_allclose(step, np.where(top > 0, top / 32767.0, 1.0), rtol=1e-6)
+    back = counts * step[:, None, None].astype(float)
+    assert np.all(np.abs(back - values) <= step[:, None, None] * (0.5 + 1e-3))
+    assert int(np.abs(counts).max()) <= 32767
+    zeros, zstep = quantise(np.zeros((2, 1, 3)))
+    assert np.all(zeros == 0) and np.all(zstep == 1.0)
 
 
 def test_a_refined_soil_grid_keeps_its_ranges_and_levels_and_refuses_a_bad_factor():

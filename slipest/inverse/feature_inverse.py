@@ -97,7 +97,7 @@ class FeatureInverse(SlipInverse):
         whiten_into(f, self._cols, table.whitener, fw)
         dmat = np.empty((k, s), dtype=np.float32)
         lc = np.empty(s)
-        grid_loglik(tc, fw, slip_prior(SLIP_NODES).astype(np.float32), 1.0, 1.0, np.inf, dmat, lc,
+        grid_loglik(tc, table.step, fw, slip_prior(SLIP_NODES).astype(np.float32), 1.0, 1.0, np.inf, dmat, lc,
                     np.empty((2, s), dtype=np.float32))
         sel = np.empty(s, dtype=np.int64)
         base = np.empty(s, dtype=np.float32)

@@ -6,8 +6,9 @@
 * :class:`GridTables`: for one :class:`~slipest.inverse.surrogate.FeatureSurrogate`,
   the mean features of every cell at every slip node, whitened by the
   model's covariance, for a leg speed and a smoothed noise level, as
-  columnar ``(D, K, S)`` float32 tables (coordinate, slip node, cell: the
-  layout of :mod:`slipest.inverse.grid_kernels`). The speed and the noise
+  columnar ``(D, K, S)`` tables of int16 counts of a step per coordinate
+  (coordinate, slip node, cell: the layout of
+  :mod:`slipest.inverse.grid_kernels`). The speed and the noise
   are binned (1 % and 5 % steps) and a few tables are kept, so a run at a
   steady speed builds one table (about 0.1 s) and a run whose speed
   changes builds one per change; one set of tables serves every wheel
@@ -88,15 +89,33 @@ class SoilGrid:
 
 @dataclass(frozen=True)
 class Table:
-    """One whitened table: ``columnar`` ``(D, K, S)`` float32 (``D`` the modelled features; each
-    coordinate is read once per cycle, so the table holds no padding), ``whitener`` ``(D, D)`` (features
-    minus the table's values, times it, are standard normal in every coordinate), and the binned leg speed
-    [rad/s] and smoothed noise [g] it is for."""
+    """One whitened table: ``columnar`` ``(D, K, S)`` int16 (``D`` the modelled features; each coordinate is
+    read once per cycle, so the table holds no padding) and ``step`` ``(D,)`` float32, the table's values
+    being ``columnar * step[:, None, None]`` (within ``step / 2``, at most 3e-3 of a standard deviation: see
+    :func:`quantise`); ``whitener`` ``(D, D)`` (features minus the table's values, times it, are standard
+    normal in every coordinate), and the binned leg speed [rad/s] and smoothed noise [g] it is for."""
 
     columnar: np.ndarray
+    step: np.ndarray
     whitener: np.ndarray
     omega: float
     noise_smooth: float
+
+    def values(self) -> np.ndarray:
+        """The table's values, ``(D, K, S)`` float32 (a copy: for checks, not for the kernels)."""
+        return self.columnar * self.step[:, None, None]
+
+
+def quantise(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``values`` ``(D, K, S)`` as int16 counts of a step per coordinate: ``(counts, step)``, ``step``
+    ``(D,)`` float32 the largest ``|value|`` of the coordinate over 32767 (so each value is within
+    ``step / 2``). The shipped model's whitened means reach 50-200 standard deviations, so the step is
+    at most 6e-3 of one and a squared distance near the best cells moves by < 0.1; the table is half the
+    size of float32's, and reading it is what the distances cost (docs/estimator.md, "Speed")."""
+    top = np.abs(values).max(axis=(1, 2)).astype(np.float64)
+    step = np.where(top > 0, top / 32767.0, 1.0)
+    counts = np.rint(values / step[:, None, None])
+    return np.ascontiguousarray(counts, dtype=np.int16), step.astype(np.float32)
 
 
 #: Relative width of the leg-speed and smoothed-noise bins of the tables [-].
@@ -145,10 +164,10 @@ class GridTables:
         mu = mu[g.mask]  # (S, K, d)
         r = self.model.cov(omega, noise_smooth)
         w = whitener(r)  # w w^T = R^-1
-        columnar = np.ascontiguousarray((mu @ w).transpose(2, 1, 0), dtype=np.float32)
+        columnar, step = quantise((mu @ w).transpose(2, 1, 0))
         columnar.flags.writeable = False
         self.builds += 1
-        return Table(columnar, w, omega, noise_smooth)
+        return Table(columnar, step, w, omega, noise_smooth)
 
 
 _REGISTRY: dict = {}
@@ -167,4 +186,4 @@ def grid_tables(model, grid: SoilGrid, nodes=SLIP_NODES) -> GridTables:
     return tables
 
 
-__all__ = ["SLIP_NODES", "slip_prior", "SoilGrid", "Table", "GridTables", "grid_tables"]
+__all__ = ["SLIP_NODES", "slip_prior", "SoilGrid", "Table", "quantise", "GridTables", "grid_tables"]

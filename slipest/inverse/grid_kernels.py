@@ -1,17 +1,20 @@
-"""Compiled kernels of the soil-grid inversions (numba, one thread, float32 tables).
+"""Compiled kernels of the soil-grid inversions (numba, one thread, int16 tables).
 
 The grid inversions (:class:`slipest.inverse.feature_inverse.FeatureInverse`, one
 cycle; :class:`slipest.estimator.SoilSlipEstimator`, recursive) compare a
 cycle's whitened features ``fw`` with the whitened mean features of every
 soil cell ``s`` at every slip node ``k``:
 
-    d(s, k) = -scale |fw - table[:, k, s]|^2 / 2 + lp[k]        [nats]
+    d(s, k) = -scale |fw - step * table[:, k, s]|^2 / 2 + lp[k]        [nats]
 
 (``lp``: log prior of the slip nodes), then marginalise slip (per cell) or
-the soil (per slip node). Tables are **columnar**, ``(D, K, S)`` float32:
+the soil (per slip node). Tables are **columnar**, ``(D, K, S)``:
 coordinate, slip node, soil cell, the cell innermost, so that every inner
-loop runs over the cells (about 6000 by default) contiguously and vectorises;
-loops over the 28-56 slip nodes of one cell are too short to.
+loop runs over the cells (about 6000 by default) contiguously and
+vectorises; loops over the 28-56 slip nodes of one cell are too short to.
+They hold int16 counts of a float32 step per coordinate
+(:class:`slipest.inverse.grid.Table`): half the bytes of float32, and
+reading the table is what the distances cost.
 
 ``exp`` of a log-likelihood difference is :func:`fexp` where the sums are
 large (float32, vectorisable, relative error ``d^2 / 2048``: the sums it
@@ -68,11 +71,12 @@ def whiten_into(row, cols, whitener, fw):
 
 
 @numba.njit(cache=True, fastmath=_NO_REASSOC)
-def grid_loglik(tc, fw, lp, node_width, scale, fit_level, dmat, lc, scratch, floor=1.0):
+def grid_loglik(tc, tstep, fw, lp, node_width, scale, fit_level, dmat, lc, scratch, floor=1.0):
     """Cell log-likelihoods with the slip marginalised over the table's slip nodes.
 
-    ``tc``: ``(D, K, S)`` float32 columnar table; ``fw``: ``(D,)`` float32
-    whitened features; ``lp``: ``(K,)`` float32 log prior of the nodes;
+    ``tc``: ``(D, K, S)`` int16 columnar table of counts of ``tstep``
+    (``(D,)`` float32, per coordinate: :class:`slipest.inverse.grid.Table`);
+    ``fw``: ``(D,)`` float32 whitened features; ``lp``: ``(K,)`` float32 log prior of the nodes;
     ``node_width``: node spacing [-]; ``scale``: the likelihood's exponent
     (tempering). The smallest squared whitened distance over cells and nodes,
     ``best``, says how well the model explains the cycle: when it exceeds
@@ -80,7 +84,7 @@ def grid_loglik(tc, fw, lp, node_width, scale, fit_level, dmat, lc, scratch, flo
     (else 1). The exponent is divided by ``widen = max(misfit, floor)``
     (``floor`` >= 1: a widening known from elsewhere, e.g. the recent
     cycles'; 1: none). Writes ``dmat[k, s] = d(s, k) = -scale |fw - tc[:, k,
-    s]|^2 / (2 widen) + lp[k]`` (``(K, S)`` float32) and ``lc[s] =
+    s] tstep|^2 / (2 widen) + lp[k]`` (``(K, S)`` float32) and ``lc[s] =
     log(node_width * sum_k exp(d(s, k)))`` (``(S,)`` float64), a Riemann sum
     of the likelihood over slip, the exp by :func:`fexp` relative to the
     cell's largest term. ``scratch``: ``(2, S)`` float32 (the largest term,
@@ -89,7 +93,7 @@ def grid_loglik(tc, fw, lp, node_width, scale, fit_level, dmat, lc, scratch, flo
     D, K, S = tc.shape
     mx = scratch[0]
     tot = scratch[1]
-    best = np.inf
+    best = np.float32(np.inf)
     for k in range(K):
         row = dmat[k]
         for s in range(S):
@@ -99,23 +103,33 @@ def grid_loglik(tc, fw, lp, node_width, scale, fit_level, dmat, lc, scratch, flo
         j = 0
         while j + 4 <= D:
             f0, f1, f2, f3 = fw[j], fw[j + 1], fw[j + 2], fw[j + 3]
+            a0, a1, a2, a3 = tstep[j], tstep[j + 1], tstep[j + 2], tstep[j + 3]
             t0, t1, t2, t3 = tc[j, k], tc[j + 1, k], tc[j + 2, k], tc[j + 3, k]
             for s in range(S):
-                e0 = t0[s] - f0
-                e1 = t1[s] - f1
-                e2 = t2[s] - f2
-                e3 = t3[s] - f3
+                e0 = a0 * np.float32(t0[s]) - f0
+                e1 = a1 * np.float32(t1[s]) - f1
+                e2 = a2 * np.float32(t2[s]) - f2
+                e3 = a3 * np.float32(t3[s]) - f3
                 row[s] = (((row[s] + e0 * e0) + e1 * e1) + e2 * e2) + e3 * e3
             j += 4
         for j in range(j, D):
             fj = fw[j]
+            aj = tstep[j]
             tj = tc[j, k]
             for s in range(S):
-                e = tj[s] - fj
+                e = aj * np.float32(tj[s]) - fj
                 row[s] += e * e
-        for s in range(S):
-            if row[s] < best:
-                best = row[s]
+        if k == 0:  # the smallest distance per cell so far, in tot (free until the sums below)
+            for s in range(S):
+                tot[s] = row[s]
+        else:
+            for s in range(S):  # tot = min(tot, row), as an exact blend: a scalar min reduction does not vectorise
+                v = row[s]
+                c = np.float32(v < tot[s])
+                tot[s] = c * v + (np.float32(1.0) - c) * tot[s]
+    for s in range(S):
+        if tot[s] < best:
+            best = tot[s]
     misfit = best / fit_level if best > fit_level else 1.0
     half = np.float32(-0.5 * scale / max(misfit, floor))
     for k in range(K):
