@@ -147,8 +147,8 @@ def slip_spread_weight(moments, slip, repeat_temper):
 
 @numba.njit(cache=True, fastmath=True)
 def _cycle_step(w, prior, hazard, soil_temper, repeat_temper, moments, forget, cutoff, sharpen, node_width, scale,
-                fit_level, floor, gross, table, tstep, fw, lp, nodes, node_quant, ref_k, ref_a, skip, summary_x, summary_q,
-                dmat, f32s, f64s, sel, ps, out):
+                fit_level, floor, gross, table, tstep, fw, lp, nodes, node_quant, ref_k, ref_a, skip, summary_x,
+                summary_q, dmat, f32s, f64s, sel, ps, out):
     """One cycle of the grid filter, in place on the weights ``w`` (the soil posterior over the cells).
 
     predict (hazard mixing with the prior), cell likelihoods on the slip
@@ -444,8 +444,8 @@ class SoilSlipEstimator(CycleEstimator):
         and ``self._fw``; returns the ``out`` row of :func:`_cycle_step`."""
         _cycle_step(w, self._prior, hazard, self.soil_temper, self.repeat_temper, moments, self.forget, SLIP_CUTOFF,
                     self.soil_sharpen, self._node_width, self.slip_temper, self.fit_level, floor, self.gross_misfit,
-                    self._table.columnar, self._table.step, self._fw, self._lp, self._nodes, self._node_quant, ref_k, ref_a, skip,
-                    self._summary_x, self._summary_q, self._dmat, self._f32s, self._f64s, self._sel, self._ps,
+                    self._table.columnar, self._table.step, self._fw, self._lp, self._nodes, self._node_quant, ref_k,
+                    ref_a, skip, self._summary_x, self._summary_q, self._dmat, self._f32s, self._f64s, self._sel, self._ps,
                     self._out)
         return self._out
 

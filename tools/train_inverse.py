@@ -104,8 +104,8 @@ def fit_level(model: FeatureSurrogate, x, rows, n: int) -> dict:
         fw = np.zeros(d, dtype=np.float32)
         if not whiten_into(rows[j], cols, table.whitener, fw):
             continue
-        b, _ = grid_loglik(table.columnar, table.step, fw, lp, 0.02, 1.0, np.inf, np.empty((k, s), np.float32), np.empty(s),
-                           np.empty((2, s), np.float32))
+        b, _ = grid_loglik(table.columnar, table.step, fw, lp, 0.02, 1.0, np.inf, np.empty((k, s), np.float32),
+                           np.empty(s), np.empty((2, s), np.float32))
         best.append(b)
     q = np.percentile(best, [50, 90, 95, 99, 99.5])
     return {"q50": float(q[0]), "q90": float(q[1]), "q95": float(q[2]), "q99": float(q[3]), "q995": float(q[4]),
