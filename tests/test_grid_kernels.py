@@ -4,10 +4,11 @@ import math
 
 import numba
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from slipest.inverse.grid import quantise
+from slipest.inverse.grid import QUANTISE_LIMIT, quantise
 from slipest.inverse.grid_kernels import _NO_REASSOC, grid_loglik
 
 
@@ -56,7 +57,7 @@ def test_a_quantised_table_holds_its_values_within_half_a_step(D, K, S, seed, sp
     rng = np.random.default_rng(seed)
     values = rng.normal(shift, spread, (D, K, S))
     values[0, 0, 0] = 0.0
-    counts, step = quantise(values)
+    counts, step = quantise(values, limit=np.inf)
     assert counts.dtype == np.int16 and step.dtype == np.float32 and counts.flags.c_contiguous
     top = np.abs(values).max(axis=(1, 2))
     np.testing.assert_allclose(step, np.where(top > 0, top / 32767.0, 1.0), rtol=1e-6)
@@ -65,6 +66,34 @@ def test_a_quantised_table_holds_its_values_within_half_a_step(D, K, S, seed, sp
     assert int(np.abs(counts).max()) <= 32767
     zeros, zstep = quantise(np.zeros((2, 1, 3)))
     assert np.all(zeros == 0) and np.all(zstep == 1.0)
+
+
+def test_a_far_cell_is_clipped_and_does_not_coarsen_the_others():
+    """One whitened mean 1e5 standard deviations out (a nearly constant feature of a calibrated rover, say):
+    clipped to the limit, the other cells keep the limit's fine step, and the cycle's distances to them are
+    those of the float64 table."""
+    rng = np.random.default_rng(7)
+    values = rng.normal(0.0, 20.0, (3, 2, 50))
+    values[1, 0, 3] = 1e5
+    counts, step = quantise(values)
+    assert step[1] == np.float32(QUANTISE_LIMIT / 32767.0)
+    back = counts * step[:, None, None].astype(float)
+    assert back[1, 0, 3] == pytest.approx(QUANTISE_LIMIT, rel=1e-6)
+    near = np.ones_like(values, dtype=bool)
+    near[1, 0, 3] = False
+    assert np.all(np.abs(back - values)[near] <= step.max() * 0.51)
+    fw = rng.normal(0.0, 3.0, 3).astype(np.float32)
+    dmat = np.empty((2, 50), dtype=np.float32)
+    grid_loglik(counts, step, fw, np.zeros(2, np.float32), 0.02, 1.0, math.inf, dmat, np.empty(50),
+                np.empty((2, 50), dtype=np.float32))
+    e = values - fw[:, None, None].astype(float)
+    exact = (e**2).sum(axis=0)
+    half = step[:, None, None].astype(float) / 2  # each value is within half a step: so is each |e|
+    bound = (2.0 * np.abs(e) * half + half**2).sum(axis=0) + 1e-6 * exact  # (and float32 sums)
+    got = -2.0 * dmat.astype(float)
+    keep = near.all(axis=0)
+    assert np.all(np.abs(got - exact)[keep] <= bound[keep])
+    assert got[0, 3] > 0.99 * (QUANTISE_LIMIT - abs(fw[1])) ** 2  # the clipped cell: still far
 
 
 def test_a_refined_soil_grid_keeps_its_ranges_and_levels_and_refuses_a_bad_factor():

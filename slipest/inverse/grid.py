@@ -91,8 +91,8 @@ class SoilGrid:
 class Table:
     """One whitened table: ``columnar`` ``(D, K, S)`` int16 (``D`` the modelled features; each coordinate is
     read once per cycle, so the table holds no padding) and ``step`` ``(D,)`` float32, the table's values
-    being ``columnar * step[:, None, None]`` (within ``step / 2``, at most 3e-3 of a standard deviation: see
-    :func:`quantise`); ``whitener`` ``(D, D)`` (features minus the table's values, times it, are standard
+    being ``columnar * step[:, None, None]`` (within ``step / 2``, at most 6e-3 of a standard deviation, up
+    to :data:`QUANTISE_LIMIT`: see :func:`quantise`); ``whitener`` ``(D, D)`` (features minus the table's values, times it, are standard
     normal in every coordinate), and the binned leg speed [rad/s] and smoothed noise [g] it is for."""
 
     columnar: np.ndarray
@@ -106,15 +106,21 @@ class Table:
         return self.columnar * self.step[:, None, None]
 
 
-def quantise(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``values`` ``(D, K, S)`` as int16 counts of a step per coordinate: ``(counts, step)``, ``step``
-    ``(D,)`` float32 the largest ``|value|`` of the coordinate over 32767 (so each value is within
-    ``step / 2``). The shipped model's whitened means reach 50-200 standard deviations, so the step is
-    at most 6e-3 of one and a squared distance near the best cells moves by < 0.1; the table is half the
-    size of float32's, and reading it is what the distances cost (docs/estimator.md, "Speed")."""
-    top = np.abs(values).max(axis=(1, 2)).astype(np.float64)
+#: Largest whitened mean a table holds [standard deviations]: beyond it a value is clipped (a cell that far
+#: from a cycle has no weight either way; clipped, it cannot coarsen the step of every other cell).
+QUANTISE_LIMIT = 400.0
+
+
+def quantise(values: np.ndarray, limit: float = QUANTISE_LIMIT) -> tuple[np.ndarray, np.ndarray]:
+    """``values`` ``(D, K, S)`` (whitened: standard deviations) as int16 counts of a step per coordinate:
+    ``(counts, step)``, ``step`` ``(D,)`` float32 the largest ``|value|`` of the coordinate, at most ``limit``,
+    over 32767. Each value within ``+-limit`` is held within ``step / 2`` (at most 6e-3 of a standard
+    deviation); one beyond is clipped to ``+-limit``. The shipped model's whitened means reach 50-200, so
+    none is clipped and a squared distance near the best cells moves by < 0.1. The table is half the size
+    of float32's, and reading it is what the distances cost (docs/estimator.md, "Speed")."""
+    top = np.minimum(np.abs(values).max(axis=(1, 2)).astype(np.float64), float(limit))
     step = np.where(top > 0, top / 32767.0, 1.0)
-    counts = np.rint(values / step[:, None, None])
+    counts = np.clip(np.rint(values / step[:, None, None]), -32767, 32767)
     return np.ascontiguousarray(counts, dtype=np.int16), step.astype(np.float32)
 
 
@@ -186,4 +192,4 @@ def grid_tables(model, grid: SoilGrid, nodes=SLIP_NODES) -> GridTables:
     return tables
 
 
-__all__ = ["SLIP_NODES", "slip_prior", "SoilGrid", "Table", "quantise", "GridTables", "grid_tables"]
+__all__ = ["SLIP_NODES", "slip_prior", "SoilGrid", "Table", "QUANTISE_LIMIT", "quantise", "GridTables", "grid_tables"]
