@@ -54,7 +54,7 @@ from slipest.cycle_estimator import CycleEstimate, CycleEstimator
 from slipest.features import FEATURE_NAMES, INDEX
 from slipest.inverse.base import Soil
 from slipest.inverse.feature_inverse import FeatureInverse
-from slipest.inverse.grid import SLIP_NODES, SoilGrid, grid_tables, slip_prior
+from slipest.inverse.grid import NOISE_STEP, SLIP_NODES, SoilGrid, grid_tables, slip_prior
 from slipest.inverse.grid_kernels import (
     grid_loglik,
     marginal_from_rows,
@@ -428,13 +428,20 @@ class SoilSlipEstimator(CycleEstimator):
 
     def prefetch(self, omega: float | None = None, noise_smooth: float | None = None) -> None:
         """Get ready for the next cycle: build its table if its leg speed [rad/s] and smoothed noise [g] (when
-        known) fall in a new bin (about 0.1 s), then bring what the cycle step reads (the table, the weights,
-        scratch: about 7 MB) into the CPU caches. Call it shortly before a cycle closes
+        both are known: finite, the speed > 0) fall in a new bin (about 0.1 s), and those of a noise one bin
+        higher and lower, then bring what the cycle step reads (the table, the weights,
+        scratch: about 7 MB) into the CPU caches. Call it before a cycle closes
         (:class:`~slipest.online.SlipEstimator` does): the step then waits less on memory. Changes nothing else."""
         if self._known:
             return
-        if omega is not None and noise_smooth is not None and math.isfinite(omega) and omega > 0:
+        if (omega is not None and noise_smooth is not None and math.isfinite(omega) and omega > 0
+                and math.isfinite(noise_smooth) and noise_smooth >= 0):
             self._table = self.tables.get(omega, noise_smooth)
+            # the smoothed noise moves by up to 5 % from one cycle to the next (its estimate, and how many samples
+            # the smoothing averages at each speed): the bins of a noise one bin higher and lower are built now
+            # too, not on the closing sample
+            for factor in (1.0 / (1.0 + NOISE_STEP), 1.0 + NOISE_STEP):
+                self.tables.get(omega, noise_smooth * factor)
         for a in (self._table.columnar, self._w, self._dmat, self._f32s, self._f64s, self._prior, self._summary_x,
                   self._sel):
             touch(a.reshape(-1))

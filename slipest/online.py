@@ -193,10 +193,18 @@ def _check_options(cls, options: dict, method: str) -> None:
         raise ValueError(f"unknown option(s) {unknown} of the {method!r} estimator; it takes {sorted(known)}")
 
 
-#: :meth:`SlipEstimator.push` has the estimator prefetch its tables into the CPU caches once this
-#: fraction of the last cycle's duration has passed since it closed (about 25 ms before the next
-#: close at the models' speed): the estimate on the closing sample then waits less on memory.
-PREFETCH_LEAD = 0.99
+#: :meth:`SlipEstimator.push` gets the estimator ready for the next close in three steps, off the closing
+#: sample's latency (:meth:`SlipEstimator._warm_for_next_close`): once this fraction of the last cycle's
+#: duration has passed since it closed, it measures the open cycle's leg speed so far and predicts its close
+#: (a cycle up to four times faster than the last is still caught before its close) ...
+PREFETCH_PLAN = 0.25
+#: ... when this fraction of the predicted cycle is left (the window half done), it builds the table of the
+#: window's speed so far if that is a new bin (about 0.1 s; the speed may change from one cycle to the next) ...
+PREFETCH_BUILD = 0.25
+#: ... and when this fraction is left (about 25 ms at the models' speed), it brings the table into the CPU
+#: caches (building it now only if the speed moved to another bin since): the estimate on the closing sample
+#: then waits less on memory.
+PREFETCH_TOUCH = 0.01
 
 
 class ReferenceTally:
@@ -447,7 +455,8 @@ class SlipEstimator:
 
     def _reset_counts(self) -> None:
         self._ref = ReferenceTally()  # the references given since the last cycle closed
-        self._prefetch_at = math.inf  # sample time [s] from which to prefetch for the next close
+        self._prefetch_at = math.inf  # sample time [s] of the next step getting ready for the next close
+        self._prefetch_step = 0  # that step: 0 plan, 1 build, 2 touch (_warm_for_next_close)
         self._n_samples = 0
         self._n_estimates = 0
         self._n_flagged: dict[str, int] = {}
@@ -701,8 +710,7 @@ class SlipEstimator:
                 self._encoder_hint()
                 out = self._push_chunk(*held) if held[0].size else []
                 if out:
-                    last = out[-1]
-                    self._prefetch_at = last.t_end + PREFETCH_LEAD * (last.t_end - last.t_start)
+                    self._plan_prefetch(out[-1])
                 elif held[0].size:
                     self._warm_for_next_close(float(held[0][-1]))
                 return out
@@ -714,21 +722,43 @@ class SlipEstimator:
             out, retimed = self._emit(cycles, [self._ref.take()] + [math.nan] * (len(cycles) - 1), defer=True)
             if retimed is not None:  # re-timed (two cycles closed at once): as above
                 self.segmenter.resync()
-            last = cycles[-1]
-            self._prefetch_at = last.t_end + PREFETCH_LEAD * (last.t_end - last.t_start)
+            self._plan_prefetch(cycles[-1])
         else:
             self._warm_for_next_close(t)
         if slip_ref is not None:
             self._ref.add(float(slip_ref))
         return out
 
+    def _plan_prefetch(self, last) -> None:
+        """After the cycle ``last`` (a cycle or an estimate: ``t_start``, ``t_end`` [s]) closed: plan the next."""
+        self._prefetch_at = last.t_end + PREFETCH_PLAN * (last.t_end - last.t_start)
+        self._prefetch_step = 0
+
     def _warm_for_next_close(self, t: float) -> None:
-        """Once the next cycle's close is near (sample time ``t`` [s]), get the estimator's table ready and warm
-        (off the closing sample's latency)."""
-        if t >= self._prefetch_at:
+        """Get the estimator's table for the next close built and warm before it (sample time ``t`` [s]; the
+        steps are those of :data:`PREFETCH_PLAN`, :data:`PREFETCH_BUILD`, :data:`PREFETCH_TOUCH`)."""
+        if t < self._prefetch_at:
+            return
+        wt, wph = self.segmenter.open_window()
+        half = math.pi / self.n_legs
+        speed = (wph[-1] - wph[0]) / (wt[-1] - wt[0]) if wt.size >= 2 and wt[-1] > wt[0] else math.nan
+        if not speed > 0.0:  # nothing to predict the close from: the closing sample builds what it needs
             self._prefetch_at = math.inf
-            wt, wph = self.segmenter.open_window()
-            self.filter.prefetch(_window_speed(wt, wph, math.pi / self.n_legs), self._noise_smooth)
+            return
+        left = (half - wph[-1]) / speed  # to the predicted close [s]
+        duration = 2.0 * half / speed  # of the open cycle at this speed [s]
+        if self._prefetch_step == 0:
+            self._prefetch_step = 1
+            if left > PREFETCH_BUILD * duration:
+                self._prefetch_at = t + left - PREFETCH_BUILD * duration
+                return
+        ws = _window_speed(wt, wph, half)
+        self.filter.prefetch(ws if math.isfinite(ws) else speed, self._noise_smooth)
+        if self._prefetch_step == 1 and left > PREFETCH_TOUCH * duration:
+            self._prefetch_step = 2
+            self._prefetch_at = t + left - PREFETCH_TOUCH * duration
+        else:
+            self._prefetch_at = math.inf
 
     def push_many(self, t, az, theta, slip_ref=None) -> list:
         """Add arrays of samples (and optionally one reference slip per sample, NaN: none).

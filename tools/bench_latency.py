@@ -18,13 +18,18 @@ Pushes a simulated log (``tools/bench_replay.py``'s 10-minute log, or
      soil summary, result object);
    * ``online``: the rest of ``push`` (speed check, ``Estimate``).
 
+3. then a drive whose leg speed changes every 3-6 cycles (0.35-1.1 rad/s, ``tools/bench_accuracy.py``'s
+   changing-speed draw, 1 kHz, 0.01 g; ``--speed-cycles``), pushed one sample at a time: the closing
+   pushes, and how many built a (speed, noise) table on the closing sample (about 0.1 s each; the
+   estimator builds them before the close, but for the stream's first cycle).
+
 Figures are milliseconds (median, p90, p99, max) with the load average of
 the machine at the time (other processes' load shows in the tail); the
 closing pushes' CPU time (``time.thread_time``) leaves out the time the
 process waited for the CPU, an estimate of the figures on a quiet machine
 (the caches are still shared).
 
-    python tools/bench_latency.py               # ~30 s
+    python tools/bench_latency.py               # ~40 s
     python tools/bench_latency.py --quick       # the first 2.5 min of the log only
 """
 
@@ -138,6 +143,8 @@ def main(argv=None) -> int:
     ap.add_argument("--log", help="log to push (default: write the 10-minute benchmark log of bench_replay.py)")
     ap.add_argument("--quick", action="store_true", help="push the first 150 s of the log only")
     ap.add_argument("--repeat", type=int, default=1, help="bare/instrumented rounds (default 1)")
+    ap.add_argument("--speed-cycles", type=int, default=100,
+                    help="cycles of the changing-speed drive (default 100; 0: none)")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="slipest-lat-") as tmp:
         sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -159,7 +166,36 @@ def main(argv=None) -> int:
         print(f"  {'  its CPU time':22s} {_stats(closing_cpu)} ms   (without the time other processes had the CPU)")
         for name, x in stages.items():
             print(f"  {name:22s} {_stats(x)} ms")
+    if args.speed_cycles > 0:
+        closing, built = changing_speed(args.speed_cycles, n_legs)
+        print(f"changing speed: {closing.size} closes, {int(built.sum())} built a table on the closing sample "
+              f"(cycles {np.flatnonzero(built).tolist()})")
+        print(f"  {'closing push (bare)':22s} {_stats(closing)} ms")
+        print(f"  {'  without the first':22s} {_stats(closing[1:])} ms")
     return 0
+
+
+def changing_speed(n_cycles: int, n_legs: int, seed: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Durations [s] of the closing pushes of a simulated drive whose leg speed changes every 3-6 cycles, and
+    whether each built a table."""
+    from bench_accuracy import draw_run, scenario
+
+    from slipest.model.stream import simulate_stream
+
+    run = draw_run(np.random.default_rng(seed), 4, -(-n_cycles // 4), changing=True)
+    run["seed"] = seed
+    s = simulate_stream(scenario(run, 1000.0, 0.01))
+    est = SlipEstimator(n_legs=n_legs)
+    tables = est.filter.tables
+    push = est.push
+    closing, built = [], []
+    for a, b, c in zip(s.t.tolist(), s.az.tolist(), s.theta.tolist()):
+        before = tables.builds
+        t0 = clock()
+        if push(a, b, c):
+            closing.append(clock() - t0)
+            built.append(tables.builds > before)
+    return np.array(closing), np.array(built)
 
 
 if __name__ == "__main__":

@@ -137,7 +137,7 @@ class GridTables:
     ``max_tables``: how many are kept (least recently used goes first).
     """
 
-    def __init__(self, model, grid: SoilGrid, nodes=SLIP_NODES, max_tables: int = 4):
+    def __init__(self, model, grid: SoilGrid, nodes=SLIP_NODES, max_tables: int = 8):
         self.model = model
         self.grid = grid
         self.nodes = np.asarray(nodes, dtype=float)
