@@ -88,7 +88,7 @@ import numpy as np
 from slipest.cycle_estimator import CycleEstimate
 from slipest.dequantize import AngleDequantizer
 from slipest.despike import outliers
-from slipest.features import INDEX, cycle_features, sample_noise
+from slipest.features import INDEX, cycle_features, sample_noise, smoothed_noise
 from slipest.inverse.base import Soil
 from slipest.segmentation import CycleSegmenter
 from slipest.swap_timing import SLUGGISH_WIDENING, SwapTiming
@@ -205,6 +205,9 @@ PREFETCH_BUILD = 0.25
 #: caches (building it now only if the speed moved to another bin since): the estimate on the closing sample
 #: then waits less on memory.
 PREFETCH_TOUCH = 0.01
+#: When the open cycle has no speed to predict its close from yet (a new stream, the rover stopped), the next
+#: look [s].
+PREFETCH_RETRY = 0.1
 
 
 class ReferenceTally:
@@ -455,7 +458,7 @@ class SlipEstimator:
 
     def _reset_counts(self) -> None:
         self._ref = ReferenceTally()  # the references given since the last cycle closed
-        self._prefetch_at = math.inf  # sample time [s] of the next step getting ready for the next close
+        self._prefetch_at = -math.inf  # sample time [s] of the next step getting ready for the next close
         self._prefetch_step = 0  # that step: 0 plan, 1 build, 2 touch (_warm_for_next_close)
         self._n_samples = 0
         self._n_estimates = 0
@@ -739,11 +742,11 @@ class SlipEstimator:
         steps are those of :data:`PREFETCH_PLAN`, :data:`PREFETCH_BUILD`, :data:`PREFETCH_TOUCH`)."""
         if t < self._prefetch_at:
             return
-        wt, wph = self.segmenter.open_window()
+        wt, waz, wph = self.segmenter.open_window()
         half = math.pi / self.n_legs
         speed = (wph[-1] - wph[0]) / (wt[-1] - wt[0]) if wt.size >= 2 and wt[-1] > wt[0] else math.nan
-        if not speed > 0.0:  # nothing to predict the close from: the closing sample builds what it needs
-            self._prefetch_at = math.inf
+        if not speed > 0.0:  # nothing to predict the close from yet (a new stream, a stop): look again soon
+            self._prefetch_at = t + PREFETCH_RETRY
             return
         left = (half - wph[-1]) / speed  # to the predicted close [s]
         duration = 2.0 * half / speed  # of the open cycle at this speed [s]
@@ -753,7 +756,11 @@ class SlipEstimator:
                 self._prefetch_at = t + left - PREFETCH_BUILD * duration
                 return
         ws = _window_speed(wt, wph, half)
-        self.filter.prefetch(ws if math.isfinite(ws) else speed, self._noise_smooth)
+        noise = self._noise_smooth
+        if not math.isfinite(noise):  # no cycle estimated yet: the open cycle's own noise, its rigid half done
+            measured = self.noise if self.noise is not None else sample_noise(wph, waz, n_legs=self.n_legs)
+            noise = smoothed_noise(measured, (wt.size - 1) / (wt[-1] - wt[0]))
+        self.filter.prefetch(ws if math.isfinite(ws) else speed, noise)
         if self._prefetch_step == 1 and left > PREFETCH_TOUCH * duration:
             self._prefetch_step = 2
             self._prefetch_at = t + left - PREFETCH_TOUCH * duration
@@ -855,6 +862,7 @@ class SlipEstimator:
         last, _ = self._emit(cycles, [ref] * len(cycles))
         out += last
         self._run_timing_job()  # (the next sample starts a new stream anyway)
+        self._prefetch_at, self._prefetch_step = -math.inf, 0  # the new stream's first close is planned too
         return out
 
     def iter_estimates(self, chunks: Iterable) -> Iterator[Estimate]:

@@ -678,11 +678,11 @@ class CycleSegmenter:
         this segmenter's ``full_scale`` and ``clip_values``)."""
         return usable(az, self.full_scale, self.clip_values)
 
-    def open_window(self) -> tuple[np.ndarray, np.ndarray]:
-        """The samples the open cycle's window holds so far: ``(t [s], theta_phase [rad])`` (views, read
-        them before the next push)."""
+    def open_window(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The samples the open cycle's window holds so far: ``(t [s], az [m/s^2], theta_phase [rad])``
+        (views, read them before the next push)."""
         n = int(self._st[0]["n"])
-        return self._buf[0, :n], self._buf[2, :n]
+        return self._buf[0, :n], self._buf[1, :n], self._buf[2, :n]
 
     @property
     def buffer_capacity(self) -> int:

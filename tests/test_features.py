@@ -15,6 +15,7 @@ from slipest.features import (
     analysis_grid,
     cycle_features,
     features_batch,
+    smoothed_noise,
 )
 from slipest.model.params import StickSlipParams
 from slipest.model.stance import simulate_batch
@@ -34,6 +35,19 @@ def burst(ph, onset=0.3, freq_hz=6.0, amp_g=0.5, omega=OMEGA):
     """Specific force [m/s^2]: 1 g at rest, then a sine of amp_g from the onset phase."""
     tau = (ph - onset) / omega
     return G + np.where(ph >= onset, amp_g * G * np.sin(2 * np.pi * freq_hz * tau), 0.0)
+
+
+@pytest.mark.parametrize("rate", [200.0, 250.0, 1000.0, 2000.0])
+@pytest.mark.parametrize("omega", [0.3, 0.63, 1.2])
+def test_smoothed_noise_is_what_the_features_measure(rate, omega):
+    """smoothed_noise (what the online layer predicts a cycle's noise_smooth from, before the cycle closes) is
+    within 1 % of the noise_smooth cycle_features gives for the same sample noise, rate and leg speed."""
+    t = np.arange(0.0, (math.pi / 2) / omega, 1.0 / rate)
+    phase = -math.pi / 4 + omega * t
+    az = G + np.random.default_rng(int(rate)).normal(0.0, 0.01 * G, t.size)
+    f = cycle_features(phase, az, t, n_legs=4, noise=0.01)
+    assert smoothed_noise(0.01, rate) == pytest.approx(f[INDEX["noise_smooth"]], rel=0.01)
+    assert math.isnan(smoothed_noise(math.nan, rate))
 
 
 def test_names_units_and_shape():
