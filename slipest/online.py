@@ -767,11 +767,14 @@ class SlipEstimator:
         else:
             self._prefetch_at = math.inf
 
-    def push_many(self, t, az, theta, slip_ref=None) -> list:
+    def push_many(self, t, az, theta, slip_ref=None, warm: bool = False) -> list:
         """Add arrays of samples (and optionally one reference slip per sample, NaN: none).
 
         Returns the estimates of the cycles they closed, in order: exactly
-        what :meth:`push` on each sample would have returned.
+        what :meth:`push` on each sample would have returned. ``warm``: then
+        get ready for the next close as :meth:`push` does after each sample
+        (its table built and in the caches before the closing sample comes):
+        for a live stream that comes in chunks; a replay gains nothing from it.
         """
         t = np.asarray(t, dtype=np.float64)
         n = t.shape[0] if t.ndim == 1 else -1
@@ -786,7 +789,12 @@ class SlipEstimator:
                 self._encoder_hint()
             if t.size == 0:
                 return []
-        return self._push_chunk(t, az, theta, slip_ref)
+        out = self._push_chunk(t, az, theta, slip_ref)
+        if warm and np.ndim(t) == 1 and np.size(t):
+            if out:
+                self._plan_prefetch(out[-1])
+            self._warm_for_next_close(float(t[-1]))
+        return out
 
     def _encoder_hint(self) -> None:
         """Say once that the encoder counts whole steps and its angle is interpolated."""

@@ -218,6 +218,30 @@ def test_a_speed_that_changes_every_cycle_builds_no_table_on_a_closing_sample():
         assert sum(at_close) == 0, (rate, at_close)
 
 
+def test_push_many_with_warm_gets_ready_between_chunks_and_changes_no_estimate():
+    """A live stream in chunks of 20 samples (push_many(warm=True), as the live runtime pushes chunks): the
+    speed changing up to 2.8x from one cycle to the next, no table is built on a chunk that closes a cycle, and
+    the estimates are those of push_many without it."""
+    omega = [0.63, 1.1, 0.4, 0.95, 0.5, 1.05, 0.7]
+    n = len(omega)
+    sc = Scenario.per_cycle(StickSlipParams(), dict(noise_g=0.01, seed=6), slip=[0.3] * n, kS=[800.0] * n,
+                            phiS=[0.55] * n, phiD=[0.35] * n, omega=omega)
+    st = simulate_stream(sc)
+    live, plain = SlipEstimator(), SlipEstimator()
+    tables = live.filter.tables
+    got, ref, at_close = [], [], []
+    for k in range(0, st.t.size, 20):
+        chunk = (st.t[k : k + 20], st.az[k : k + 20], st.theta[k : k + 20])
+        before = tables.builds
+        out = live.push_many(*chunk, warm=True)
+        if out:
+            at_close.append(tables.builds - before)
+        got += out
+        ref += plain.push_many(*chunk)
+    assert len(got) == len(ref) == n - 1 and all(_same(a, b) for a, b in zip(got, ref))
+    assert sum(at_close) == 0, at_close
+
+
 def test_a_stream_whose_first_cycles_are_not_estimated_goes_on():
     """The first cycles flagged (a rover starting below the covered speeds): no noise is known yet when the
     next close is prepared; push() must not fail, and the cycles at a covered speed are estimated."""

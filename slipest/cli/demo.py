@@ -121,9 +121,9 @@ class _SideBySide:
         self._keep(self.ref.push(t, az, theta, slip_ref))
         return self.cal.push(t, az, theta, slip_ref)
 
-    def push_many(self, t, az, theta, slip_ref=None):
-        self._keep(self.ref.push_many(t, az, theta, slip_ref))
-        return self.cal.push_many(t, az, theta, slip_ref)
+    def push_many(self, t, az, theta, slip_ref=None, warm: bool = False):
+        self._keep(self.ref.push_many(t, az, theta, slip_ref, warm=warm))
+        return self.cal.push_many(t, az, theta, slip_ref, warm=warm)
 
     def finish(self):
         self._keep(self.ref.finish())

@@ -265,7 +265,7 @@ class LiveEstimation:
                     estimates += est.push(float(s.t[i]), float(s.az[i]), float(s.theta[i]),
                                           float(s.slip[i]) if use_ref else None)
             else:
-                estimates = est.push_many(s.t, s.az, s.theta, s.slip if self.use_reference else None)
+                estimates = est.push_many(s.t, s.az, s.theta, s.slip if self.use_reference else None, warm=True)
         except (ValueError, FloatingPointError) as exc:  # never let one bad cycle stop the stream
             self._estimator_error(wheel, exc)
             return
