@@ -68,6 +68,23 @@ def test_a_quantised_table_holds_its_values_within_half_a_step(D, K, S, seed, sp
     assert np.all(zeros == 0) and np.all(zstep == 1.0)
 
 
+@settings(max_examples=40, deadline=None)
+@given(st.integers(1, 6), st.integers(1, 4), st.integers(1, 40), st.integers(0, 2**32 - 1),
+       st.floats(1e-3, 600.0), st.booleans())
+def test_quantise_equals_its_numpy_statement(D, K, S, seed, spread, cells_outermost):
+    """The compiled quantise_into gives exactly the counts and steps of the plain numpy statement, whatever the
+    layout it reads (the build's cells-outermost array, or a columnar one)."""
+    rng = np.random.default_rng(seed)
+    values = rng.normal(0.0, spread, (D, K, S))
+    if cells_outermost:
+        values = np.ascontiguousarray(values.transpose(2, 1, 0)).transpose(2, 1, 0)
+    counts, step = quantise(values)
+    top = np.minimum(np.abs(values).max(axis=(1, 2)), QUANTISE_LIMIT)
+    plain = np.where(top > 0, top / 32767.0, 1.0)
+    assert np.array_equal(step, plain.astype(np.float32))
+    assert np.array_equal(counts, np.clip(np.rint(values / plain[:, None, None]), -32767, 32767).astype(np.int16))
+
+
 def test_a_far_cell_is_clipped_and_does_not_coarsen_the_others():
     """One whitened mean 1e5 standard deviations out (a nearly constant feature of a calibrated rover, say):
     clipped to the limit, the other cells keep the limit's fine step, and the cycle's distances to them are

@@ -15,7 +15,11 @@ Writes two simulated logs (1 kHz, 0.01 g noise, the soil changing every
    the ``push`` call that closes a cycle (the estimate is computed inside
    it), median, 90th and 99th percentiles (the machine's load average is
    printed too: on a shared machine the tail is other processes' doing);
-4. peak memory of ``slipest replay`` on the 10-minute and the long log,
+4. replay end to end of a drive whose leg speed changes every 3-6 cycles
+   (``tools/bench_accuracy.py``'s changing-speed draw, 0.35-1.1 rad/s,
+   ``--speed-cycles`` cycles): each new (speed, noise) bin builds a table
+   (about 40-60 ms), which a steady log does once;
+5. peak memory of ``slipest replay`` on the 10-minute and the long log,
    each in a fresh process (``ru_maxrss``) and with ``tracemalloc`` (Python
    allocations), to show it does not grow with the log's length.
 
@@ -25,7 +29,7 @@ the log's length; issue 11, with the model of the whole envelope, keeps
 them but for the closing sample: p99 <= 2 ms. The figures are printed as measured, on whatever else
 the machine is doing at the time.
 
-    python tools/bench_replay.py            # ~2-3 min
+    python tools/bench_replay.py            # ~3 min
     python tools/bench_replay.py --hours 0.25 --keep DIR
 """
 
@@ -65,6 +69,22 @@ def write_log(path: Path, seconds: float, seed: int) -> int:
     rows = 0
     with LogWriter(path, ("t", "az", "theta", "slip"), metadata=sc.metadata(), overwrite=True) as w:
         for ch in tqdm(iter_stream(sc), total=(n + 31) // 32, desc=f"write {path.name}", file=sys.stderr):
+            w.write(ch.t, ch.az, ch.theta, ch.slip)
+            rows += len(ch)
+    return rows
+
+
+def write_changing_speed_log(path: Path, cycles: int, seed: int) -> int:
+    """A log of ``tools/bench_accuracy.py``'s changing-speed draw (1 kHz, 0.01 g): its number of samples."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bench_accuracy import draw_run, scenario
+
+    run = draw_run(np.random.default_rng(seed), 4, -(-cycles // 4), changing=True)
+    run["seed"] = seed
+    sc = scenario(run, 1000.0, 0.01)
+    rows = 0
+    with LogWriter(path, ("t", "az", "theta", "slip"), metadata=sc.metadata(), overwrite=True) as w:
+        for ch in iter_stream(sc):
             w.write(ch.t, ch.az, ch.theta, ch.slip)
             rows += len(ch)
     return rows
@@ -147,6 +167,7 @@ def main(argv=None) -> int:
     ap.add_argument("--hours", type=float, default=1.0, help="length of the long log [h] (default 1)")
     ap.add_argument("--push-samples", type=int, default=600_000, help="samples pushed one at a time (default 600k)")
     ap.add_argument("--keep", help="write the logs into this directory and keep them")
+    ap.add_argument("--speed-cycles", type=int, default=200, help="cycles of the changing-speed drive (default 200)")
     ap.add_argument("--json", help="also write the figures to this JSON file")
     args = ap.parse_args(argv)
     tmp = None
@@ -167,6 +188,10 @@ def main(argv=None) -> int:
         replay_in_process(short, d / "warm.csv")  # warm caches once
         dt = replay_in_process(long_, d / "out_long.csv")
         res["replay_in_process"] = {"seconds": dt, "samples_per_s": n_long / dt}
+        speeds = d / "log_changing_speed.csv"
+        n_speeds = write_changing_speed_log(speeds, args.speed_cycles, 3)
+        dt = replay_in_process(speeds, d / "out_speeds.csv")
+        res["replay_changing_speed"] = {"samples": n_speeds, "seconds": dt, "samples_per_s": n_speeds / dt}
         child = {name: replay_child(log, d / f"out_{name}.csv", trace=False) for name, log in (("short", short), ("long", long_))}
         for name, c in child.items():
             c["samples_per_s_wall"] = res["samples"][name] / c["wall_s"]
@@ -195,6 +220,9 @@ def main(argv=None) -> int:
           f"{args.hours:g} h = {r['samples']['long']} samples ({r['log_mb']['long']:.0f} MiB)")
     print(f"replay end to end, in process ({args.hours:g} h log): {r['replay_in_process']['samples_per_s'] / 1e6:.2f} M samples/s "
           f"({r['replay_in_process']['seconds']:.2f} s)   [target >= 1 M/s]")
+    c = r["replay_changing_speed"]
+    print(f"replay end to end, in process, leg speed changing every 3-6 cycles ({c['samples']} samples): "
+          f"{c['samples_per_s'] / 1e6:.2f} M samples/s ({c['seconds']:.2f} s; a table built per new speed)")
     for name in ("short", "long"):
         c = r["replay_process"][name]
         print(f"replay as a new process ({name}): {c['samples_per_s_wall'] / 1e6:.2f} M samples/s wall "

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from slipest.inverse.grid_kernels import quantise_into
 from slipest.inverse.surrogate import whitener
 
 #: Slip nodes of the grid inversions [-]: 0 to 0.55 by 0.01.
@@ -118,10 +119,11 @@ def quantise(values: np.ndarray, limit: float = QUANTISE_LIMIT) -> tuple[np.ndar
     deviation); one beyond is clipped to ``+-limit``. The shipped model's whitened means reach 50-200, so
     none is clipped and a squared distance near the best cells moves by < 0.1. The table is half the size
     of float32's, and reading it is what the distances cost (docs/estimator.md, "Speed")."""
-    top = np.minimum(np.abs(values).max(axis=(1, 2)).astype(np.float64), float(limit))
-    step = np.where(top > 0, top / 32767.0, 1.0)
-    counts = np.clip(np.rint(values / step[:, None, None]), -32767, 32767)
-    return np.ascontiguousarray(counts, dtype=np.int16), step.astype(np.float32)
+    values = np.asarray(values, dtype=np.float64)
+    counts = np.empty(values.shape, dtype=np.int16)
+    step = np.empty(values.shape[0], dtype=np.float32)
+    quantise_into(values.transpose(2, 1, 0), float(limit), counts, step)  # read in the cells' order
+    return counts, step
 
 
 #: Relative width of the leg-speed and smoothed-noise bins of the tables [-].

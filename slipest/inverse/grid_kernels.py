@@ -70,6 +70,32 @@ def whiten_into(row, cols, whitener, fw):
     return True
 
 
+@numba.njit(cache=True)
+def quantise_into(x, limit, counts, step):
+    """The int16 counts of :func:`slipest.inverse.grid.quantise`, read from ``x`` ``(S, K, D)`` (the cell
+    outermost, as the whitened means are computed) and written columnar: ``counts`` ``(D, K, S)`` int16 and
+    ``step`` ``(D,)`` float32 (the largest ``|x|`` of the coordinate, at most ``limit``, over 32767; 1 for a
+    coordinate of zeros); each count is ``rint(x / step)`` in float64, clipped to +-32767."""
+    S, K, D = x.shape
+    top = np.zeros(D)
+    for s in range(S):
+        for k in range(K):
+            for d in range(D):
+                v = abs(x[s, k, d])
+                if v > top[d]:
+                    top[d] = v
+    st = np.empty(D)
+    for d in range(D):
+        t = min(top[d], limit)
+        st[d] = t / 32767.0 if t > 0.0 else 1.0
+        step[d] = np.float32(st[d])
+    for s in range(S):
+        for k in range(K):
+            for d in range(D):
+                q = np.rint(x[s, k, d] / st[d])
+                counts[d, k, s] = np.int16(min(max(q, -32767.0), 32767.0))
+
+
 @numba.njit(cache=True, fastmath=_NO_REASSOC)
 def grid_loglik(tc, tstep, fw, lp, node_width, scale, fit_level, dmat, lc, scratch, floor=1.0):
     """Cell log-likelihoods with the slip marginalised over the table's slip nodes.
