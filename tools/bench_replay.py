@@ -18,7 +18,7 @@ Writes two simulated logs (1 kHz, 0.01 g noise, the soil changing every
 4. replay end to end of a drive whose leg speed changes every 3-6 cycles
    (``tools/bench_accuracy.py``'s changing-speed draw, 0.35-1.1 rad/s,
    ``--speed-cycles`` cycles): each new (speed, noise) bin builds a table
-   (about 40-60 ms), which a steady log does once;
+   (about 50 ms), which a steady log does once;
 5. peak memory of ``slipest replay`` on the 10-minute and the long log,
    each in a fresh process (``ru_maxrss``) and with ``tracemalloc`` (Python
    allocations), to show it does not grow with the log's length.

@@ -106,8 +106,8 @@ def legendre_design(u: np.ndarray, terms: np.ndarray) -> np.ndarray:
 def legendre_on_grid(terms4: np.ndarray, coef: np.ndarray, center4, halfwidth4, levels) -> np.ndarray:
     """A tensor Legendre polynomial in (slip, kS, phiS, dphi) (terms ``(T, 4)``, coefficients ``(T, d)``,
     normalisation ``u = (x - center4) / halfwidth4``) on the tensor grid of ``levels`` = (slip nodes, kS,
-    phiS, dphi levels): ``(nk, nphiS, ndphi, K, d)``, contracted one variable at a time (matrix products).
-    Repeated terms add up."""
+    phiS, dphi levels): ``(nk, nphiS, ndphi, K, d)`` (a transposed view, not contiguous), contracted one
+    variable at a time (matrix products). Repeated terms add up."""
     deg = int(terms4.max())
     p = deg + 1
     dense = np.zeros((p, p, p, p, coef.shape[1]))
@@ -119,7 +119,7 @@ def legendre_on_grid(terms4: np.ndarray, coef: np.ndarray, center4, halfwidth4, 
     x = np.tensordot(x, bases[2], axes=([2], [1]))  # (a, b, f, dphi, phiS)
     x = np.tensordot(x, bases[1], axes=([1], [1]))  # (a, f, dphi, phiS, kS)
     x = np.tensordot(x, bases[0], axes=([0], [1]))  # (f, dphi, phiS, kS, slip)
-    return np.ascontiguousarray(x.transpose(3, 2, 1, 4, 0))
+    return x.transpose(3, 2, 1, 4, 0)  # a view: callers gather cells from it (a copy cost a third of a build)
 
 
 def check_patches(patches) -> np.ndarray:
