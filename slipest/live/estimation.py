@@ -135,9 +135,10 @@ class LiveEstimation:
     def warmup(self) -> float:
         """Get the estimator's one-time costs (loading the model, compiled
         code) out of the way before data comes: a throwaway estimator gets
-        three synthetic leg cycles, and a fresh one is kept for the first
-        wheel.  Raises the estimator's ``ValueError``/``TypeError`` on bad
-        options.  Returns the seconds it took."""
+        three synthetic leg cycles, pushed one sample at a time (and a chunk
+        more), and a fresh one is kept for the first wheel.  Raises the
+        estimator's ``ValueError``/``TypeError`` on bad options.  Returns the
+        seconds it took."""
         t0 = time.monotonic()
         est = self._factory(-1)
         n_legs = self.n_legs
@@ -148,8 +149,11 @@ class LiveEstimation:
         phase = np.mod(theta + math.pi / n_legs, 2 * math.pi / n_legs) - math.pi / n_legs
         rng = np.random.default_rng(0)
         az = 9.81 + np.where(phase > 0.2, 3.0 * np.sin(2 * math.pi * 12 * t), 0.0) + rng.normal(0, 0.1, t.size)
-        try:
-            est.push_many(t, az, theta)
+        try:  # one sample at a time, as a live stream comes: push's own compiled paths (getting ready for the
+            # next close among them) are then compiled here, not in the middle of the first wheel's stream
+            for a, b, c in zip(t.tolist(), az.tolist(), theta.tolist()):
+                est.push(a, b, c)
+            est.push_many(t[:16] + t[-1] + 1e-3, az[:16], theta[:16] + theta[-1] - theta[0], warm=True)
         except ValueError:  # the synthetic cycles are only for warming up; what they give does not matter
             pass
         self._spare = self._factory(0)
