@@ -72,17 +72,19 @@ def test_a_quantised_table_holds_its_values_within_half_a_step(D, K, S, seed, sp
 @given(st.integers(1, 6), st.integers(1, 4), st.integers(1, 40), st.integers(0, 2**32 - 1),
        st.floats(1e-3, 600.0), st.booleans())
 def test_quantise_equals_its_numpy_statement(D, K, S, seed, spread, cells_outermost):
-    """The compiled quantise_into gives exactly the counts and steps of the plain numpy statement, whatever the
-    layout it reads (the build's cells-outermost array, or a columnar one)."""
+    """The compiled quantise_into gives exactly the counts and steps of the plain numpy statement (counts of the
+    float32 step the kernels multiply by), whatever the layout it reads (the build's cells-outermost array, or
+    a columnar one)."""
     rng = np.random.default_rng(seed)
     values = rng.normal(0.0, spread, (D, K, S))
     if cells_outermost:
         values = np.ascontiguousarray(values.transpose(2, 1, 0)).transpose(2, 1, 0)
     counts, step = quantise(values)
     top = np.minimum(np.abs(values).max(axis=(1, 2)), QUANTISE_LIMIT)
-    plain = np.where(top > 0, top / 32767.0, 1.0)
-    assert np.array_equal(step, plain.astype(np.float32))
-    assert np.array_equal(counts, np.clip(np.rint(values / plain[:, None, None]), -32767, 32767).astype(np.int16))
+    plain = np.where(top > 0, top / 32767.0, 1.0).astype(np.float32)
+    assert np.array_equal(step, plain)
+    used = plain.astype(np.float64)[:, None, None]
+    assert np.array_equal(counts, np.clip(np.rint(values / used), -32767, 32767).astype(np.int16))
 
 
 def test_a_far_cell_is_clipped_and_does_not_coarsen_the_others():

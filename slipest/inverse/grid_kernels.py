@@ -75,7 +75,8 @@ def quantise_into(x, limit, counts, step):
     """The int16 counts of :func:`slipest.inverse.grid.quantise`, read from ``x`` ``(S, K, D)`` (the cell
     outermost, as the whitened means are computed) and written columnar: ``counts`` ``(D, K, S)`` int16 and
     ``step`` ``(D,)`` float32 (the largest ``|x|`` of the coordinate, at most ``limit``, over 32767; 1 for a
-    coordinate of zeros); each count is ``rint(x / step)`` in float64, clipped to +-32767."""
+    coordinate of zeros); each count is ``rint(x / step)`` in float64 with the float32 step the kernels
+    multiply by (so ``count * step`` is within ``step / 2`` of ``x``), clipped to +-32767."""
     S, K, D = x.shape
     top = np.zeros(D)
     for s in range(S):
@@ -87,8 +88,8 @@ def quantise_into(x, limit, counts, step):
     st = np.empty(D)
     for d in range(D):
         t = min(top[d], limit)
-        st[d] = t / 32767.0 if t > 0.0 else 1.0
-        step[d] = np.float32(st[d])
+        step[d] = np.float32(t / 32767.0 if t > 0.0 else 1.0)
+        st[d] = step[d]
     for s in range(S):
         for k in range(K):
             for d in range(D):
