@@ -452,8 +452,8 @@ class SoilSlipEstimator(CycleEstimator):
         _cycle_step(w, self._prior, hazard, self.soil_temper, self.repeat_temper, moments, self.forget, SLIP_CUTOFF,
                     self.soil_sharpen, self._node_width, self.slip_temper, self.fit_level, floor, self.gross_misfit,
                     self._table.columnar, self._table.step, self._fw, self._lp, self._nodes, self._node_quant, ref_k,
-                    ref_a, skip, self._summary_x, self._summary_q, self._dmat, self._f32s, self._f64s, self._sel, self._ps,
-                    self._out)
+                    ref_a, skip, self._summary_x, self._summary_q, self._dmat, self._f32s, self._f64s, self._sel,
+                    self._ps, self._out)
         return self._out
 
     @property

@@ -20,8 +20,8 @@ Pushes a simulated log (``tools/bench_replay.py``'s 10-minute log, or
 
 3. then a drive whose leg speed changes every 3-6 cycles (0.35-1.1 rad/s, ``tools/bench_accuracy.py``'s
    changing-speed draw, 1 kHz, 0.01 g; ``--speed-cycles``), pushed one sample at a time: the closing
-   pushes, and how many built a (speed, noise) table on the closing sample (about 0.1 s each; the
-   estimator builds them before the close, but for the stream's first cycle).
+   pushes, and how many built a (speed, noise) table on the closing sample (about 0.05 s each; the
+   estimator builds them before the close, the stream's first cycle's included).
 
 Figures are milliseconds (median, p90, p99, max) with the load average of
 the machine at the time (other processes' load shows in the tail); the
@@ -178,13 +178,11 @@ def main(argv=None) -> int:
 def changing_speed(n_cycles: int, n_legs: int, seed: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Durations [s] of the closing pushes of a simulated drive whose leg speed changes every 3-6 cycles, and
     whether each built a table."""
-    from bench_accuracy import draw_run, scenario
+    from bench_replay import changing_speed_scenario
 
     from slipest.model.stream import simulate_stream
 
-    run = draw_run(np.random.default_rng(seed), 4, -(-n_cycles // 4), changing=True)
-    run["seed"] = seed
-    s = simulate_stream(scenario(run, 1000.0, 0.01))
+    s = simulate_stream(changing_speed_scenario(n_cycles, seed))
     est = SlipEstimator(n_legs=n_legs)
     tables = est.filter.tables
     push = est.push

@@ -66,28 +66,32 @@ def write_log(path: Path, seconds: float, seed: int) -> int:
     dphi = np.repeat(rng.uniform(0.0, 0.35, n_soil), 100)[:n]
     sc = Scenario.per_cycle(base, dict(noise_g=0.01, rate=1000.0, seed=seed), slip=slip, kS=kS, phiS=phiD + dphi,
                             phiD=phiD)
+    return write_scenario(path, sc, progress=(n + 31) // 32)
+
+
+def write_scenario(path: Path, sc: Scenario, progress: int | None = None) -> int:
+    """Write a scenario's stream as a log CSV (with a progress bar of ``progress`` chunks when given): its number of
+    samples."""
     rows = 0
+    chunks = iter_stream(sc)
+    if progress:
+        chunks = tqdm(chunks, total=progress, desc=f"write {path.name}", file=sys.stderr)
     with LogWriter(path, ("t", "az", "theta", "slip"), metadata=sc.metadata(), overwrite=True) as w:
-        for ch in tqdm(iter_stream(sc), total=(n + 31) // 32, desc=f"write {path.name}", file=sys.stderr):
+        for ch in chunks:
             w.write(ch.t, ch.az, ch.theta, ch.slip)
             rows += len(ch)
     return rows
 
 
-def write_changing_speed_log(path: Path, cycles: int, seed: int) -> int:
-    """A log of ``tools/bench_accuracy.py``'s changing-speed draw (1 kHz, 0.01 g): its number of samples."""
+def changing_speed_scenario(cycles: int, seed: int) -> Scenario:
+    """A drive of ``tools/bench_accuracy.py``'s changing-speed draw (the leg speed changing every 3-6 cycles over
+    0.35-1.1 rad/s; 4 soils), at least ``cycles`` cycles, 1 kHz, 0.01 g."""
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from bench_accuracy import draw_run, scenario
 
     run = draw_run(np.random.default_rng(seed), 4, -(-cycles // 4), changing=True)
     run["seed"] = seed
-    sc = scenario(run, 1000.0, 0.01)
-    rows = 0
-    with LogWriter(path, ("t", "az", "theta", "slip"), metadata=sc.metadata(), overwrite=True) as w:
-        for ch in iter_stream(sc):
-            w.write(ch.t, ch.az, ch.theta, ch.slip)
-            rows += len(ch)
-    return rows
+    return scenario(run, 1000.0, 0.01)
 
 
 def log_or_default(log: str | None, tmp: str) -> Path:
@@ -189,7 +193,7 @@ def main(argv=None) -> int:
         dt = replay_in_process(long_, d / "out_long.csv")
         res["replay_in_process"] = {"seconds": dt, "samples_per_s": n_long / dt}
         speeds = d / "log_changing_speed.csv"
-        n_speeds = write_changing_speed_log(speeds, args.speed_cycles, 3)
+        n_speeds = write_scenario(speeds, changing_speed_scenario(args.speed_cycles, 3))
         dt = replay_in_process(speeds, d / "out_speeds.csv")
         res["replay_changing_speed"] = {"samples": n_speeds, "seconds": dt, "samples_per_s": n_speeds / dt}
         child = {name: replay_child(log, d / f"out_{name}.csv", trace=False) for name, log in (("short", short), ("long", long_))}

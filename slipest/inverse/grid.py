@@ -93,8 +93,9 @@ class Table:
     """One whitened table: ``columnar`` ``(D, K, S)`` int16 (``D`` the modelled features; each coordinate is
     read once per cycle, so the table holds no padding) and ``step`` ``(D,)`` float32, the table's values
     being ``columnar * step[:, None, None]`` (within ``step / 2``, at most 6e-3 of a standard deviation, up
-    to :data:`QUANTISE_LIMIT`: see :func:`quantise`); ``whitener`` ``(D, D)`` (features minus the table's values, times it, are standard
-    normal in every coordinate), and the binned leg speed [rad/s] and smoothed noise [g] it is for."""
+    to :data:`QUANTISE_LIMIT`: see :func:`quantise`); ``whitener`` ``(D, D)`` (features minus the table's
+    values, times it, are standard normal in every coordinate), and the binned leg speed [rad/s] and
+    smoothed noise [g] it is for."""
 
     columnar: np.ndarray
     step: np.ndarray

@@ -153,7 +153,8 @@ class LiveEstimation:
             # next close among them) are then compiled here, not in the middle of the first wheel's stream
             for a, b, c in zip(t.tolist(), az.tolist(), theta.tolist()):
                 est.push(a, b, c)
-            est.push_many(t[:16] + t[-1] + 1e-3, az[:16], theta[:16] + theta[-1] - theta[0], warm=True)
+            more = np.arange(1, 17) * 1e-3  # and 16 more samples of the same stream as a chunk (push_many's paths)
+            est.push_many(t[-1] + more, az[:16], theta[-1] + omega * more, warm=True)
         except ValueError:  # the synthetic cycles are only for warming up; what they give does not matter
             pass
         self._spare = self._factory(0)
