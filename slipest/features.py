@@ -55,6 +55,10 @@ spec_bw        Hz     power-weighted spread of that frequency (same band)
 e_cent         rad    energy-weighted mean phase (energy as for ``energy_q*``);
                       0 when no energy is above the noise
 e_spread       rad    energy-weighted spread of the phase about ``e_cent``
+spec_skew      Hz     cube root of the power-weighted third central moment of
+                      that frequency (band and spectrum of ``spec_cent``)
+spec_cent2     Hz     ``spec_cent`` of the window's second half (its own mean
+                      removed and Hann window); 0 with no power there
 =============  =====  =========================================================
 
 Gravity and bias: the IMU reports the specific force (``+g`` at rest) plus
@@ -71,8 +75,9 @@ difference of the samples of the rigid half of the cycle (phase in
 foot), or, when the cycle does not carry that half, of the first
 :data:`STICK_SPAN` rad of the window.
 
-One compiled routine (numba) computes a row, the spectral moments' discrete Fourier transform over their band
-included: 0.074 ms median a closing cycle in ``tools/bench_latency.py``'s features stage.
+One compiled routine (numba) computes a row, the spectral moments' discrete Fourier transforms over their band
+included: 0.10 ms median a closing cycle in ``tools/bench_latency.py``'s features stage. ``spec_skew`` and
+``spec_cent2`` are computed but not in the shipped model (docs/estimator.md, "two more smooth features").
 """
 
 from __future__ import annotations
@@ -110,10 +115,13 @@ FEATURE_NAMES = (
     "spec_bw",
     "e_cent",
     "e_spread",
+    "spec_skew",
+    "spec_cent2",
 )
 
 #: Unit of each feature, same order as :data:`FEATURE_NAMES`.
-FEATURE_UNITS = ("g",) * 8 + ("rad",) * 4 + ("Hz",) * 3 + ("-", "g", "g", "rad/s", "g", "Hz", "Hz", "rad", "rad")
+FEATURE_UNITS = ("g",) * 8 + ("rad",) * 4 + ("Hz",) * 3 + ("-", "g", "g", "rad/s", "g", "Hz", "Hz", "rad", "rad", "Hz",
+                                                             "Hz")
 
 #: Column index of each feature.
 INDEX = {name: j for j, name in enumerate(FEATURE_NAMES)}
@@ -153,7 +161,8 @@ _ZC_RATE, _OSC_FREQ, _RICE_FREQ = INDEX["zc_rate"], INDEX["osc_freq"], INDEX["ri
 _N_CROSSINGS, _NOISE, _STICK_MEAN = INDEX["n_crossings"], INDEX["noise"], INDEX["stick_mean"]
 _OMEGA, _NOISE_SMOOTH = INDEX["omega"], INDEX["noise_smooth"]
 _SPEC_CENT, _E_CENT = INDEX["spec_cent"], INDEX["e_cent"]
-#: Frequency band of ``spec_cent`` and ``spec_bw`` [Hz].
+_SPEC_SKEW, _SPEC_CENT2 = INDEX["spec_skew"], INDEX["spec_cent2"]
+#: Frequency band of ``spec_cent``, ``spec_bw``, ``spec_skew`` and ``spec_cent2`` [Hz].
 SPECTRAL_BAND = (1.5, 20.0)
 _ENERGY_TARGETS = (0.1, 0.5, 0.9)
 
@@ -392,23 +401,25 @@ def _mean_relative_features(y, sig_s, half, omega, out):
 
 
 @numba.njit(cache=True, inline="always")
-def _spectral_moments(y, dt, out):
-    """``spec_cent``, ``spec_bw`` [Hz]: power-weighted mean and spread of the frequency over
-    :data:`SPECTRAL_BAND` of the window's signal ``y`` (grid step ``dt`` [s]; its mean removed, Hann-windowed,
-    discrete Fourier transform at the grid's frequencies ``k / (n dt)``); 0 and 0 with no power in the band."""
-    n = y.size
+def _band_power_moments(y, i0, i1, dt):
+    """Power-weighted moments of the frequency over :data:`SPECTRAL_BAND` of the signal ``y[i0:i1]`` (grid step
+    ``dt`` [s]; its mean removed, Hann-windowed, discrete Fourier transform at the frequencies ``k / (n dt)``):
+    ``(power, mean, spread, skew)`` [-, Hz, Hz, Hz], the skew the cube root of the third central moment; 0, 0,
+    0, 0 with no power in the band."""
+    n = i1 - i0
     mean = 0.0
-    for b in range(n):
+    for b in range(i0, i1):
         mean += y[b]
     mean /= n
     x = np.empty(n)
     for b in range(n):
-        x[b] = (y[b] - mean) * (0.5 - 0.5 * math.cos(2.0 * math.pi * b / (n - 1)))
+        x[b] = (y[i0 + b] - mean) * (0.5 - 0.5 * math.cos(2.0 * math.pi * b / (n - 1)))
     k0 = int(math.ceil(SPECTRAL_BAND[0] * n * dt))
     k1 = min(int(math.floor(SPECTRAL_BAND[1] * n * dt)), n // 2)
     p0 = 0.0
     p1 = 0.0
     p2 = 0.0
+    p3 = 0.0
     for k in range(k0, k1 + 1):
         step = 2.0 * math.pi * k / n
         cs, sn = math.cos(step), math.sin(step)
@@ -424,13 +435,25 @@ def _spectral_moments(y, dt, out):
         p0 += pw
         p1 += pw * f
         p2 += pw * f * f
-    if p0 > 0.0:
-        cent = p1 / p0
-        out[_SPEC_CENT] = cent
-        out[_SPEC_CENT + 1] = math.sqrt(max(p2 / p0 - cent * cent, 0.0))
-    else:
-        out[_SPEC_CENT] = 0.0
-        out[_SPEC_CENT + 1] = 0.0
+        p3 += pw * f * f * f
+    if not p0 > 0.0:
+        return 0.0, 0.0, 0.0, 0.0
+    cent = p1 / p0
+    m2 = p2 / p0
+    third = p3 / p0 - 3.0 * cent * m2 + 2.0 * cent * cent * cent  # E[(f - cent)^3]
+    return p0, cent, math.sqrt(max(m2 - cent * cent, 0.0)), math.copysign(abs(third) ** (1.0 / 3.0), third)
+
+
+@numba.njit(cache=True, inline="always")
+def _spectral_moments(y, dt, out):
+    """``spec_cent``, ``spec_bw``, ``spec_skew`` of the whole window's signal ``y`` and ``spec_cent2`` of its
+    second half [Hz] (:func:`_band_power_moments`; grid step ``dt`` [s])."""
+    n = y.size
+    _, cent, bw, skew = _band_power_moments(y, 0, n, dt)
+    out[_SPEC_CENT] = cent
+    out[_SPEC_CENT + 1] = bw
+    out[_SPEC_SKEW] = skew
+    out[_SPEC_CENT2] = _band_power_moments(y, n // 2, n, dt)[1]
 
 
 @numba.njit(cache=True, inline="always")

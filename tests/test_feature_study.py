@@ -1,4 +1,4 @@
-"""The smooth moment features (spec_cent, spec_bw, e_cent, e_spread): what they mean, the compiled kernel equal to a
+"""The smooth moment features (spec_cent, spec_bw, spec_skew, spec_cent2, e_cent, e_spread): what they mean, the compiled kernel equal to a
 plain numpy reference; tools/feature_study.py runs end to end."""
 
 import json
@@ -33,13 +33,22 @@ def reference_moments(features, grids, omega, half):
     et = np.maximum(e.sum(1), 1e-300)
     e_cent = (e * phase).sum(1) / et
     e_spread = np.sqrt((e * (phase - e_cent[:, None]) ** 2).sum(1) / et)
-    power = np.abs(np.fft.rfft((g - g.mean(1, keepdims=True)) * np.hanning(n_grid), axis=1)) ** 2
-    freq = np.fft.rfftfreq(n_grid, dphase / omega)
-    band = (freq >= SPECTRAL_BAND[0]) & (freq <= SPECTRAL_BAND[1])
-    p, f = power[:, band], freq[band]
+
+    def spectrum(part):
+        m = part.shape[1]
+        power = np.abs(np.fft.rfft((part - part.mean(1, keepdims=True)) * np.hanning(m), axis=1)) ** 2
+        freq = np.fft.rfftfreq(m, dphase / omega)
+        band = (freq >= SPECTRAL_BAND[0]) & (freq <= SPECTRAL_BAND[1])
+        return power[:, band], freq[band]
+
+    p, f = spectrum(g)
     cent = (p * f).sum(1) / p.sum(1)
     bw = np.sqrt((p * (f - cent[:, None]) ** 2).sum(1) / p.sum(1))
-    return {"e_cent": e_cent, "e_spread": e_spread, "spec_cent": cent, "spec_bw": bw}
+    skew = np.cbrt((p * (f - cent[:, None]) ** 3).sum(1) / p.sum(1))
+    p2, f2 = spectrum(g[:, n_grid // 2:])
+    cent2 = (p2 * f2).sum(1) / p2.sum(1)
+    return {"e_cent": e_cent, "e_spread": e_spread, "spec_cent": cent, "spec_bw": bw, "spec_skew": skew,
+            "spec_cent2": cent2}
 
 
 def _features_of_grids(grids, omega, noise_smooth=0.0):
@@ -56,8 +65,24 @@ def test_spectral_centroid_of_a_sine_is_its_frequency():
     f = _features_of_grids(grids, omega)
     assert f[:, FEATURE_NAMES.index("spec_cent")] == pytest.approx([4.0, 7.0], abs=0.3)
     assert np.all(f[:, FEATURE_NAMES.index("spec_bw")] < 1.0)
+    assert f[:, FEATURE_NAMES.index("spec_cent2")] == pytest.approx([4.0, 7.0], abs=0.5)  # its half: the same sine
     flat = _features_of_grids(np.ones((1, N_GRID)), omega)[0]
-    assert flat[FEATURE_NAMES.index("spec_cent")] == 0.0 and flat[FEATURE_NAMES.index("spec_bw")] == 0.0
+    for name in ("spec_cent", "spec_bw", "spec_skew", "spec_cent2"):
+        assert flat[FEATURE_NAMES.index(name)] == 0.0, name
+
+
+def test_spectral_skew_says_which_side_the_power_leans_to_and_the_second_half_centroid_which_half_has_it():
+    omega = 0.63
+    t = (np.arange(N_GRID) + 0.5) * (HALF / N_GRID) / omega  # seconds
+    low, high = np.sin(2 * np.pi * 4.0 * t), np.sin(2 * np.pi * 12.0 * t)
+    grids = np.stack([1.0 + 0.3 * low + 0.1 * high,  # most power low, a little high: leans up (positive skew)
+                      1.0 + 0.1 * low + 0.3 * high,  # the reverse
+                      1.0 + np.where(t > t[-1] / 2, 0.3 * high, 0.3 * low)])  # 4 Hz first half, 12 Hz second half
+    f = _features_of_grids(grids, omega)
+    skew = f[:, FEATURE_NAMES.index("spec_skew")]
+    assert skew[0] > 1.0 and skew[1] < -1.0
+    assert f[2, FEATURE_NAMES.index("spec_cent2")] == pytest.approx(12.0, abs=1.0)
+    assert f[2, FEATURE_NAMES.index("spec_cent")] < 10.0  # the whole window: both
 
 
 def test_energy_moments_follow_where_the_energy_is():

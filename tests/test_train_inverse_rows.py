@@ -43,3 +43,19 @@ def test_rows_are_kept_reused_and_refused_when_the_features_differ(tmp_path, cap
     err = capsys.readouterr().err
     assert "old.npz holds other features" in err and "simulate again" in err
     assert not (tmp_path / "c.npz").exists()
+
+
+def test_add_features_models_them_beside_the_shipped_set_and_refuses_what_it_cannot(tmp_path, capsys):
+    from slipest.inverse.surrogate import MODEL_FEATURES
+
+    out = tmp_path / "m.npz"
+    assert train_inverse.main(TINY + ["--add-features", "spec_skew,spec_cent2", "--out", str(out)]) == 0
+    m = load_inverse_model(out)
+    assert m.features == tuple(MODEL_FEATURES) + ("spec_skew", "spec_cent2")
+    assert m.coef.shape[-1] == len(m.features) and m.cov_coef.shape[-1] == len(m.features)
+    capsys.readouterr()
+    for bad in ("bogus", "onset", "spec_skew,spec_skew"):
+        with pytest.raises(SystemExit) as e:
+            train_inverse.main(TINY + ["--add-features", bad, "--out", str(tmp_path / "x.npz")])
+        assert e.value.code == 2 and "--add-features" in capsys.readouterr().err
+    assert not (tmp_path / "x.npz").exists()

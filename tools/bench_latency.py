@@ -18,7 +18,13 @@ Pushes a simulated log (``tools/bench_replay.py``'s 10-minute log, or
      soil summary, result object);
    * ``online``: the rest of ``push`` (speed check, ``Estimate``).
 
-3. then a drive whose leg speed changes every 3-6 cycles (0.35-1.1 rad/s, ``tools/bench_accuracy.py``'s
+3. paced (``--paced-cycles``, default 20, about 50 s): the same log's first cycles pushed at the log's
+   own time, one sample per millisecond as a live IMU sends them, the process idle in between (as
+   ``slipest demo`` and a rover are). The closing pushes take longer than back to back: on this
+   kind of machine the same compiled cycle step takes 0.68 ms when run back to back and 1.2-1.5 ms
+   after 10 ms of sleep or of busy waiting, with its data brought into the caches just before
+   (docs/estimator.md, "Speed": the machine's state after idle, not slipest's path);
+4. then a drive whose leg speed changes every 3-6 cycles (0.35-1.1 rad/s, ``tools/bench_accuracy.py``'s
    changing-speed draw, 1 kHz, 0.01 g; ``--speed-cycles``), pushed one sample at a time: the closing
    pushes, and how many built a (speed, noise) table on the closing sample (about 0.05 s each; the
    estimator builds them before the close, the stream's first cycle's included).
@@ -29,7 +35,7 @@ closing pushes' CPU time (``time.thread_time``) leaves out the time the
 process waited for the CPU, an estimate of the figures on a quiet machine
 (the caches are still shared).
 
-    python tools/bench_latency.py               # ~40 s
+    python tools/bench_latency.py               # ~90 s (50 s of it the real-time round)
     python tools/bench_latency.py --quick       # the first 2.5 min of the log only
 """
 
@@ -143,6 +149,8 @@ def main(argv=None) -> int:
     ap.add_argument("--log", help="log to push (default: write the 10-minute benchmark log of bench_replay.py)")
     ap.add_argument("--quick", action="store_true", help="push the first 150 s of the log only")
     ap.add_argument("--repeat", type=int, default=1, help="bare/instrumented rounds (default 1)")
+    ap.add_argument("--paced-cycles", type=int, default=20,
+                    help="closing pushes of the real-time round (default 20, about 50 s; 0: none)")
     ap.add_argument("--speed-cycles", type=int, default=100,
                     help="cycles of the changing-speed drive (default 100; 0: none)")
     args = ap.parse_args(argv)
@@ -166,6 +174,13 @@ def main(argv=None) -> int:
         print(f"  {'  its CPU time':22s} {_stats(closing_cpu)} ms   (without the time other processes had the CPU)")
         for name, x in stages.items():
             print(f"  {name:22s} {_stats(x)} ms")
+    if args.paced_cycles > 0:
+        load0 = os.getloadavg()[0]
+        closing, closing_cpu = paced(t, az, th, n_legs, args.paced_cycles)
+        print(f"paced at the log's time (one sample per {1e3 * (t[1] - t[0]):.1f} ms, idle between), load "
+              f"{load0:.2f} -> {os.getloadavg()[0]:.2f}:")
+        print(f"  {'closing push (bare)':22s} {_stats(closing)} ms   ({closing.size} cycles)")
+        print(f"  {'  its CPU time':22s} {_stats(closing_cpu)} ms")
     if args.speed_cycles > 0:
         closing, built = changing_speed(args.speed_cycles, n_legs)
         print(f"changing speed: {closing.size} closes, {int(built.sum())} built a table on the closing sample "
@@ -173,6 +188,29 @@ def main(argv=None) -> int:
         print(f"  {'closing push (bare)':22s} {_stats(closing)} ms")
         print(f"  {'  without the first':22s} {_stats(closing[1:])} ms")
     return 0
+
+
+def paced(t, az, th, n_legs, n_cycles: int) -> tuple[np.ndarray, np.ndarray]:
+    """Wall and CPU (this thread's) durations [s] of the first ``n_cycles`` closing pushes of the log pushed at its own time (``t`` [s]): each
+    sample waits (sleeping) until its time has come on this host's clock, as a live stream arrives."""
+    SlipEstimator(n_legs=n_legs).push_many(t[:20000], az[:20000], th[:20000])  # warm up
+    est = SlipEstimator(n_legs=n_legs)
+    push = est.push
+    cpu = time.thread_time
+    closing, closing_cpu = [], []
+    start, t0 = clock(), t[0]
+    for a, b, c in zip(t, az, th):
+        wait = (a - t0) - (clock() - start)
+        if wait > 0.0:
+            time.sleep(wait)
+        s = clock()
+        sc = cpu()
+        if push(a, b, c):
+            closing_cpu.append(cpu() - sc)
+            closing.append(clock() - s)
+            if len(closing) >= n_cycles:
+                break
+    return np.array(closing), np.array(closing_cpu)
 
 
 def changing_speed(n_cycles: int, n_legs: int, seed: int = 1) -> tuple[np.ndarray, np.ndarray]:

@@ -130,8 +130,16 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=777)
     ap.add_argument("--rows", type=Path, help="an .npz of simulated rows: read if it exists (refused if "
                     "its features are not slipest.features' own), else written")
+    ap.add_argument("--add-features", default="", metavar="NAMES",
+                    help="research: comma-separated features of slipest.features modelled beside the shipped model's "
+                         "(e.g. spec_skew,spec_cent2: docs/estimator.md, \"two more smooth features\")")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = ap.parse_args(argv)
+    modelled = tuple(MODEL_FEATURES) + tuple(n for n in args.add_features.split(",") if n)
+    unknown = [n for n in modelled[len(MODEL_FEATURES):] if n not in FEATURE_NAMES or n in MODEL_FEATURES]
+    if unknown or len(set(modelled)) != len(modelled):
+        ap.error(f"--add-features: {', '.join(unknown) or 'a name twice'} (names of slipest.features.FEATURE_NAMES "
+                 "the model does not have yet)")
     if args.nodes < 2:
         ap.error("--nodes must be at least 2")
     if not 0 < args.span[0] < args.span[1]:
@@ -181,7 +189,7 @@ def main(argv=None) -> int:
     center, halfwidth = (lo + hi) / 2, (hi - lo) / 2
     ranges = np.vstack([np.column_stack([lo, hi]), [node_omegas[0], node_omegas[-1]]])
     terms = node_terms(SCHEDULES[args.schedule])
-    cols = [INDEX[f] for f in MODEL_FEATURES]
+    cols = [INDEX[f] for f in modelled]
     coef, cov_coef = [], []
     patches = one_patch(center, halfwidth) if args.patches is None else args.patches
     patch_rows = sum(int(np.sum(patch_weights(xn[:, 0], patches) > 0)) for xn in x_nodes)  # what fit_node fits
@@ -207,7 +215,7 @@ def main(argv=None) -> int:
     }
 
     def build(meta):
-        return FeatureSurrogate(MODEL_FEATURES, node_omegas, center, halfwidth, ranges, PHID_MIN, terms,
+        return FeatureSurrogate(modelled, node_omegas, center, halfwidth, ranges, PHID_MIN, terms,
                                 np.stack(coef), np.stack(cov_coef), covered, meta, patches,
                                 default_cov_knots(center, halfwidth))
 
