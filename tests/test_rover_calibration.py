@@ -245,15 +245,28 @@ def test_calibrate_names_a_log_without_slip(tmp_path, rover_logs):
     assert not (tmp_path / "r.json").exists()
 
 
-def test_a_named_effect_gives_a_physics_correction_that_transfers_to_other_soils(rover_logs):
-    """The simulator with the effect the diagnosis would name, as a feature discrepancy: the testbed logs'
-    blind estimates (soil unknown) improve."""
+@pytest.fixture(scope="module")
+def transfer_logs(tmp_path_factory):
+    """Testbed logs of the rover of ``rover_logs`` on six soils (its two and four more), 15 cycles each."""
+    d = tmp_path_factory.mktemp("transfer")
+    rng = np.random.default_rng(99)
+    levels = np.array([0.05, 0.15, 0.25, 0.35, 0.45])
+    soils = [(600.0, 0.45, 0.3), (900.0, 0.7, 0.4), (1100.0, 0.4, 0.25), (1400.0, 0.55, 0.45), (800.0, 0.5, 0.32),
+             (1200.0, 0.62, 0.42)]
+    return [_write(d / f"tb{j}.csv", _scenario(40 + j, soil, np.repeat(rng.permutation(levels), 3)))
+            for j, soil in enumerate(soils)]
+
+
+def test_a_named_effect_gives_a_physics_correction_that_transfers_to_other_soils(transfer_logs):
+    """The simulator with the effect the diagnosis would name, as a feature discrepancy: the blind estimates
+    (soil unknown) of testbed logs on six soils improve. (Two soils are too few to judge a transfer: a model
+    may happen to cope with the effect on them uncorrected; docs/estimator.md, "two more smooth features".)"""
     from slipest.io.log_csv import read_log
     from slipest.rover.calibrate import Candidate, CalibrateOptions, _build_candidate, _choice_rmse, _slip_spread
     from slipest.rover.fit import blind_score
     from slipest.rover.testbed import TestbedLog
 
-    _, tb, _ = rover_logs
+    tb = transfer_logs
     logs = []
     for p in tb:
         log = read_log(p)
