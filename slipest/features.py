@@ -404,8 +404,8 @@ def _mean_relative_features(y, sig_s, half, omega, out):
 def _band_power_moments(y, i0, i1, dt):
     """Power-weighted moments of the frequency over :data:`SPECTRAL_BAND` of the signal ``y[i0:i1]`` (grid step
     ``dt`` [s]; its mean removed, Hann-windowed, discrete Fourier transform at the frequencies ``k / (n dt)``):
-    ``(power, mean, spread, skew)`` [-, Hz, Hz, Hz], the skew the cube root of the third central moment; 0, 0,
-    0, 0 with no power in the band."""
+    ``(mean, spread, skew)`` [Hz], the skew the cube root of the third central moment; 0, 0, 0 with no power
+    in the band."""
     n = i1 - i0
     mean = 0.0
     for b in range(i0, i1):
@@ -437,11 +437,11 @@ def _band_power_moments(y, i0, i1, dt):
         p2 += pw * f * f
         p3 += pw * f * f * f
     if not p0 > 0.0:
-        return 0.0, 0.0, 0.0, 0.0
+        return 0.0, 0.0, 0.0
     cent = p1 / p0
     m2 = p2 / p0
     third = p3 / p0 - 3.0 * cent * m2 + 2.0 * cent * cent * cent  # E[(f - cent)^3]
-    return p0, cent, math.sqrt(max(m2 - cent * cent, 0.0)), math.copysign(abs(third) ** (1.0 / 3.0), third)
+    return cent, math.sqrt(max(m2 - cent * cent, 0.0)), math.copysign(abs(third) ** (1.0 / 3.0), third)
 
 
 @numba.njit(cache=True, inline="always")
@@ -449,11 +449,11 @@ def _spectral_moments(y, dt, out):
     """``spec_cent``, ``spec_bw``, ``spec_skew`` of the whole window's signal ``y`` and ``spec_cent2`` of its
     second half [Hz] (:func:`_band_power_moments`; grid step ``dt`` [s])."""
     n = y.size
-    _, cent, bw, skew = _band_power_moments(y, 0, n, dt)
+    cent, bw, skew = _band_power_moments(y, 0, n, dt)
     out[_SPEC_CENT] = cent
     out[_SPEC_CENT + 1] = bw
     out[_SPEC_SKEW] = skew
-    out[_SPEC_CENT2] = _band_power_moments(y, n // 2, n, dt)[1]
+    out[_SPEC_CENT2] = _band_power_moments(y, n // 2, n, dt)[0]
 
 
 @numba.njit(cache=True, inline="always")

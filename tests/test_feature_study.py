@@ -1,5 +1,5 @@
-"""The smooth moment features (spec_cent, spec_bw, spec_skew, spec_cent2, e_cent, e_spread): what they mean, the compiled kernel equal to a
-plain numpy reference; tools/feature_study.py runs end to end."""
+"""The smooth moment features (spec_cent, spec_bw, spec_skew, spec_cent2, e_cent, e_spread): what they mean, the
+compiled kernel equal to a plain numpy reference; tools/feature_study.py runs end to end."""
 
 import json
 import math

@@ -22,8 +22,8 @@ Pushes a simulated log (``tools/bench_replay.py``'s 10-minute log, or
    own time, one sample per millisecond as a live IMU sends them, the process idle in between (as
    ``slipest demo`` and a rover are). The closing pushes take longer than back to back: on this
    kind of machine the same compiled cycle step takes 0.68 ms when run back to back and 1.2-1.5 ms
-   after 10 ms of sleep or of busy waiting, with its data brought into the caches just before
-   (docs/estimator.md, "Speed": the machine's state after idle, not slipest's path);
+   after 10 ms of sleep or of busy waiting, even with its data read just before: after a pause its
+   memory reads are slower, not its arithmetic (docs/estimator.md, "Paced at real time");
 4. then a drive whose leg speed changes every 3-6 cycles (0.35-1.1 rad/s, ``tools/bench_accuracy.py``'s
    changing-speed draw, 1 kHz, 0.01 g; ``--speed-cycles``), pushed one sample at a time: the closing
    pushes, and how many built a (speed, noise) table on the closing sample (about 0.05 s each; the
@@ -69,21 +69,31 @@ def _stats(x) -> str:
             f"max {x.max():.3f}")
 
 
-def bare(t, az, th, n_legs):
-    """Wall and CPU (this thread's) durations [s] of the closing pushes, and mean wall duration of a push [s]."""
+def closing_pushes(t, az, th, n_legs, *, paced: bool = False, max_closes: int | None = None):
+    """Wall and CPU (this thread's) durations [s] of the closing pushes of the log pushed one sample at a time,
+    and the mean wall duration of a push [s]. ``paced``: each sample waits (sleeping) until its time (``t``
+    [s]) has come on this host's clock, as a live stream arrives; ``max_closes``: stop after that many."""
     SlipEstimator(n_legs=n_legs).push_many(t[:20000], az[:20000], th[:20000])  # warm up
     est = SlipEstimator(n_legs=n_legs)
     push = est.push
     cpu = time.thread_time
     closing, closing_cpu = [], []
+    n = 0
     t0 = clock()
     for a, b, c in zip(t, az, th):
+        if paced:
+            wait = (a - t[0]) - (clock() - t0)
+            if wait > 0.0:
+                time.sleep(wait)
+        n += 1
         s = clock()
         sc = cpu()
         if push(a, b, c):
             closing_cpu.append(cpu() - sc)
             closing.append(clock() - s)
-    return np.array(closing), np.array(closing_cpu), (clock() - t0) / len(t)
+            if max_closes is not None and len(closing) >= max_closes:
+                break
+    return np.array(closing), np.array(closing_cpu), (clock() - t0) / n
 
 
 class _Timer:
@@ -166,7 +176,7 @@ def main(argv=None) -> int:
     n_legs = d.metadata.n_legs or 4
     for rnd in range(args.repeat):
         load0 = os.getloadavg()[0]
-        closing, closing_cpu, per = bare(t, az, th, n_legs)
+        closing, closing_cpu, per = closing_pushes(t, az, th, n_legs)
         stages = instrumented(t, az, th, n_legs)
         load1 = os.getloadavg()[0]
         print(f"round {rnd + 1}: {n} samples, load average {load0:.2f} -> {load1:.2f} on {os.cpu_count()} CPUs")
@@ -176,7 +186,7 @@ def main(argv=None) -> int:
             print(f"  {name:22s} {_stats(x)} ms")
     if args.paced_cycles > 0:
         load0 = os.getloadavg()[0]
-        closing, closing_cpu = paced(t, az, th, n_legs, args.paced_cycles)
+        closing, closing_cpu, _ = closing_pushes(t, az, th, n_legs, paced=True, max_closes=args.paced_cycles)
         print(f"paced at the log's time (one sample per {1e3 * (t[1] - t[0]):.1f} ms, idle between), load "
               f"{load0:.2f} -> {os.getloadavg()[0]:.2f}:")
         print(f"  {'closing push (bare)':22s} {_stats(closing)} ms   ({closing.size} cycles)")
@@ -188,29 +198,6 @@ def main(argv=None) -> int:
         print(f"  {'closing push (bare)':22s} {_stats(closing)} ms")
         print(f"  {'  without the first':22s} {_stats(closing[1:])} ms")
     return 0
-
-
-def paced(t, az, th, n_legs, n_cycles: int) -> tuple[np.ndarray, np.ndarray]:
-    """Wall and CPU (this thread's) durations [s] of the first ``n_cycles`` closing pushes of the log pushed at its own time (``t`` [s]): each
-    sample waits (sleeping) until its time has come on this host's clock, as a live stream arrives."""
-    SlipEstimator(n_legs=n_legs).push_many(t[:20000], az[:20000], th[:20000])  # warm up
-    est = SlipEstimator(n_legs=n_legs)
-    push = est.push
-    cpu = time.thread_time
-    closing, closing_cpu = [], []
-    start, t0 = clock(), t[0]
-    for a, b, c in zip(t, az, th):
-        wait = (a - t0) - (clock() - start)
-        if wait > 0.0:
-            time.sleep(wait)
-        s = clock()
-        sc = cpu()
-        if push(a, b, c):
-            closing_cpu.append(cpu() - sc)
-            closing.append(clock() - s)
-            if len(closing) >= n_cycles:
-                break
-    return np.array(closing), np.array(closing_cpu)
 
 
 def changing_speed(n_cycles: int, n_legs: int, seed: int = 1) -> tuple[np.ndarray, np.ndarray]:

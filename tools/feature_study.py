@@ -33,8 +33,8 @@ The sets: the 14 features the model had before the moments; those with the cross
 ``osc_freq``) replaced by the spectral moments (``spec_cent``, ``spec_bw``); with the energy quantiles
 replaced by the energy moments (``e_cent``, ``e_spread``); the shipped model's 18 (the 14 and the four
 moments); and those 18 with the spectrum's skew ``spec_skew`` and the second half's centroid ``spec_cent2``
-(a candidate: ``python tools/train_inverse.py --add-features spec_skew,spec_cent2`` trains it). A new candidate is added to :mod:`slipest.features`
-first (:func:`slipest.inverse.simdata.simulate_features` with
+(a candidate: ``python tools/train_inverse.py --add-features spec_skew,spec_cent2`` trains it). A new
+candidate is added to :mod:`slipest.features` first (:func:`slipest.inverse.simdata.simulate_features` with
 ``grids=True`` gives the smoothed signal to prototype it on), then to a
 set here.
 
