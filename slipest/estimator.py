@@ -82,7 +82,8 @@ DEFAULT_HAZARD = 0.01
 DEFAULT_SOIL_TEMPER = 0.15
 #: Default forgetting of the soil posterior per update [-] (1: none; see module docstring).
 DEFAULT_FORGET = 0.9
-#: Default tempering of a cycle's slip likelihood [-] (widens the slip posterior for the surrogate's error).
+#: Tempering of a cycle's slip likelihood [-] (widens the slip posterior for the surrogate's error), when the
+#: model file does not say (:data:`MODEL_SETTINGS`; the 18-feature model's).
 DEFAULT_SLIP_TEMPER = 0.4
 #: Default exponent on the soil posterior where it weighs the cells for the slip estimate and the soil reported [-]
 #: (the posterior kept stays tempered and forgotten; docs/estimator.md, "Sharpened for the estimate").
@@ -98,12 +99,17 @@ DISCREPANCY_MEMORY = 0.9
 #: A cycle's best distance enters the running discrepancy as at least this fraction of ``fit_typical`` (one
 #: cycle fitted unusually well does not hide a discrepancy of the next ones).
 FIT_RATIO_MIN = 0.1
-#: Default misfit from which a cycle is not estimated: its best candidate 6.8 times farther, squared, than the
-#: clean cycles' 99th percentile (75.7 for the shipped 18-feature model: a squared whitened distance of about
-#: 515), where widening cannot make an estimate honest. An effect's distance grows less with the number of
-#: features than the clean percentile does, so the threshold keeps the distance of the 14-feature model's 10
-#: (docs/estimator.md, "four smooth features").
+#: Squared whitened distance of a cycle's best candidate from which it is not estimated, where widening cannot
+#: make an estimate honest. An effect's distance grows less with the number of features than the clean
+#: cycles' percentile does, so the threshold keeps one distance: the 14-feature model's misfit 10, the
+#: 18-feature one's 6.8, the 20-feature one's 5.6 (docs/estimator.md, "four smooth features").
+GROSS_DISTANCE = 512.0
+#: Misfit from which a cycle is not estimated, when the model file does not say (:data:`MODEL_SETTINGS`):
+#: the 18-feature model's (:data:`GROSS_DISTANCE` over its ``fit_level`` 75.7).
 DEFAULT_GROSS_MISFIT = 6.8
+#: Settings a model file states for the estimator in its ``meta["estimator"]`` (they are tuned with the model:
+#: ``tools/train_inverse.py`` writes them), used where the caller does not give them.
+MODEL_SETTINGS = ("slip_temper", "gross_misfit")
 #: Default share of ``soil_temper`` a cycle's soil update gets while the slip has not varied [-].
 DEFAULT_REPEAT_TEMPER = 0.3
 #: Spread (standard deviation) of the recent cycles' slips [-] from which they count as varied.
@@ -324,6 +330,10 @@ class SoilSlipEstimator(CycleEstimator):
     gross_misfit: misfit from which a cycle is not estimated: its estimate
         has every value NaN but ``misfit`` and ``discrepancy``, and it
         updates nothing but the running discrepancy (inf: never) [-].
+
+    ``slip_temper`` and ``gross_misfit`` default (None) to the model file's
+    ``meta["estimator"]`` (:data:`MODEL_SETTINGS`), else to
+    :data:`DEFAULT_SLIP_TEMPER` and :data:`DEFAULT_GROSS_MISFIT`.
     """
 
     def __init__(
@@ -334,21 +344,24 @@ class SoilSlipEstimator(CycleEstimator):
         hazard: float = DEFAULT_HAZARD,
         soil_temper: float = DEFAULT_SOIL_TEMPER,
         forget: float = DEFAULT_FORGET,
-        slip_temper: float = DEFAULT_SLIP_TEMPER,
+        slip_temper: float | None = None,
         grid: SoilGrid | None = None,
         n_legs: int = 4,
         fit_level: float | None = None,
         fit_typical: float | None = None,
         repeat_temper: float = DEFAULT_REPEAT_TEMPER,
-        gross_misfit: float = DEFAULT_GROSS_MISFIT,
+        gross_misfit: float | None = None,
         soil_sharpen: float = DEFAULT_SOIL_SHARPEN,
     ):
+        self.model = model or load_inverse_model()
+        stated = self.model.meta.get("estimator", {})
+        slip_temper = float(stated.get("slip_temper", DEFAULT_SLIP_TEMPER) if slip_temper is None else slip_temper)
+        gross_misfit = float(stated.get("gross_misfit", DEFAULT_GROSS_MISFIT) if gross_misfit is None else gross_misfit)
         if not 0.0 <= hazard < 1.0:
             raise ValueError(f"hazard={hazard} must be in [0, 1)")
         if not (0.0 < soil_temper <= 1.0 and 0.0 < slip_temper <= 1.0 and 0.0 < forget <= 1.0
                 and 0.0 < repeat_temper <= 1.0):
             raise ValueError("soil_temper, slip_temper, forget and repeat_temper must be in (0, 1]")
-        self.model = model or load_inverse_model()
         self.model_legs = self.model.n_legs
         self.interval_scale = float(self.model.interval_scale)
         self.omega_range = self.model.covered_range("omega")

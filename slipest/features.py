@@ -76,8 +76,7 @@ foot), or, when the cycle does not carry that half, of the first
 :data:`STICK_SPAN` rad of the window.
 
 One compiled routine (numba) computes a row, the spectral moments' discrete Fourier transforms over their band
-included: 0.10 ms median a closing cycle in ``tools/bench_latency.py``'s features stage. ``spec_skew`` and
-``spec_cent2`` are computed but not in the shipped model (docs/estimator.md, "two more smooth features").
+included: 0.10 ms median a closing cycle in ``tools/bench_latency.py``'s features stage.
 """
 
 from __future__ import annotations

@@ -323,6 +323,30 @@ def test_the_sharpened_soil_moves_the_estimates_and_never_narrows_the_intervals(
             SoilSlipEstimator(soil_sharpen=bad)
 
 
+def test_slip_tempering_and_gross_misfit_come_from_the_model_file_unless_given():
+    """The model file's ``meta["estimator"]`` sets ``slip_temper`` and ``gross_misfit``; a caller's value wins; a
+    model that states none (an older file) gets the module's defaults."""
+    from dataclasses import replace
+
+    from slipest.estimator import DEFAULT_GROSS_MISFIT, DEFAULT_SLIP_TEMPER
+    from slipest.inverse.surrogate import load_inverse_model
+
+    shipped = load_inverse_model()
+    stated = shipped.meta["estimator"]
+    est = SoilSlipEstimator(model=shipped)
+    assert (est.slip_temper, est.gross_misfit) == (stated["slip_temper"], stated["gross_misfit"])
+    other = replace(shipped, meta=dict(shipped.meta, estimator={"slip_temper": 0.7, "gross_misfit": 3.0}))
+    est = SoilSlipEstimator(model=other)
+    assert (est.slip_temper, est.gross_misfit) == (0.7, 3.0)
+    est = SoilSlipEstimator(model=other, slip_temper=0.2, gross_misfit=9.0)
+    assert (est.slip_temper, est.gross_misfit) == (0.2, 9.0)
+    older = replace(shipped, meta={k: v for k, v in shipped.meta.items() if k != "estimator"})
+    est = SoilSlipEstimator(model=older)
+    assert (est.slip_temper, est.gross_misfit) == (DEFAULT_SLIP_TEMPER, DEFAULT_GROSS_MISFIT)
+    with pytest.raises(ValueError, match="slip_temper"):
+        SoilSlipEstimator(model=replace(shipped, meta=dict(shipped.meta, estimator={"slip_temper": 0.0})))
+
+
 def test_compiled_whitening_gives_the_mahalanobis_distance(change_stream):
     """The compiled whitening of a feature row, against a table column, gives the squared Mahalanobis distance
     ``(f - mu)^T R^-1 (f - mu)`` of the surrogate at that cell and slip node, at the table's leg speed and noise;

@@ -335,7 +335,7 @@ def test_the_shipped_covariance_is_positive_definite_at_every_speed_and_trained_
 @pytest.mark.parametrize("rate, noise", [(1000.0, 0.01), (200.0, 0.03)])
 def test_held_out_stances_whiten_to_the_number_of_features_even_at_the_noisiest_imu(rate, noise):
     """Simulated stances over the covered domain at 0.6-0.66 rad/s: the mean squared whitened residual from
-    the shipped model is about the number of modelled features (18), at an ordinary IMU and at the corner of
+    the shipped model is about the number of modelled features (20), at an ordinary IMU and at the corner of
     the envelope (200 Hz, 0.03 g: about 2e6 with the format-4 covariance)."""
     from slipest.features import INDEX
     from slipest.inverse.simdata import draw_envelope, simulate_features

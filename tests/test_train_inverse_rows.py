@@ -26,6 +26,13 @@ def test_rows_are_kept_reused_and_refused_when_the_features_differ(tmp_path, cap
 
     assert train_inverse.main(TINY + ["--rows", str(rows), "--out", str(tmp_path / "b.npz")]) == 0
     a, b = load_inverse_model(tmp_path / "a.npz"), load_inverse_model(tmp_path / "b.npz")
+    # the estimator's settings are written into the model: the slip tempering, and the gross misfit that keeps
+    # the threshold's squared distance whatever the model's misfit level
+    from slipest.estimator import GROSS_DISTANCE
+
+    stated = a.meta["estimator"]
+    assert stated["slip_temper"] == train_inverse.SLIP_TEMPER
+    assert abs(stated["gross_misfit"] * a.meta["fit_level"] - GROSS_DISTANCE) <= 0.05 * a.meta["fit_level"]
     np.testing.assert_array_equal(a.coef, b.coef)
     np.testing.assert_array_equal(a.cov_coef, b.cov_coef)
     # the reused file's simulation time is the one it was simulated in, not the time it took to read it
@@ -45,16 +52,22 @@ def test_rows_are_kept_reused_and_refused_when_the_features_differ(tmp_path, cap
     assert not (tmp_path / "c.npz").exists()
 
 
-def test_add_features_models_them_beside_the_shipped_set_and_refuses_what_it_cannot(tmp_path, capsys):
+def test_added_features_and_the_slip_tempering_go_into_the_model_and_bad_ones_are_refused(tmp_path, capsys):
     from slipest.inverse.surrogate import MODEL_FEATURES
 
     out = tmp_path / "m.npz"
-    assert train_inverse.main(TINY + ["--add-features", "spec_skew,spec_cent2", "--out", str(out)]) == 0
+    rows = ["--rows", str(tmp_path / "r.npz"), "--add-features", "delta_a,stick_mean"]
+    assert train_inverse.main(TINY + rows + ["--out", str(out)]) == 0
     m = load_inverse_model(out)
-    assert m.features == tuple(MODEL_FEATURES) + ("spec_skew", "spec_cent2")
+    assert m.features == tuple(MODEL_FEATURES) + ("delta_a", "stick_mean")
     assert m.coef.shape[-1] == len(m.features) and m.cov_coef.shape[-1] == len(m.features)
+    assert train_inverse.main(TINY + rows + ["--slip-temper", "0.5", "--out", str(out)]) == 0
+    assert load_inverse_model(out).meta["estimator"]["slip_temper"] == 0.5
     capsys.readouterr()
-    for bad in ("bogus", "onset", "spec_skew,spec_skew"):
+    with pytest.raises(SystemExit) as e:
+        train_inverse.main(TINY + ["--slip-temper", "0", "--out", str(tmp_path / "x.npz")])
+    assert e.value.code == 2 and "--slip-temper" in capsys.readouterr().err
+    for bad in ("bogus", "onset", "spec_skew", "delta_a,delta_a"):
         with pytest.raises(SystemExit) as e:
             train_inverse.main(TINY + ["--add-features", bad, "--out", str(tmp_path / "x.npz")])
         assert e.value.code == 2 and "--add-features" in capsys.readouterr().err

@@ -31,12 +31,11 @@ says what a change gives.
 
 The sets: the 14 features the model had before the moments; those with the crossing counts (``zc_rate``,
 ``osc_freq``) replaced by the spectral moments (``spec_cent``, ``spec_bw``); with the energy quantiles
-replaced by the energy moments (``e_cent``, ``e_spread``); the shipped model's 18 (the 14 and the four
-moments); and those 18 with the spectrum's skew ``spec_skew`` and the second half's centroid ``spec_cent2``
-(a candidate: ``python tools/train_inverse.py --add-features spec_skew,spec_cent2`` trains it). A new
-candidate is added to :mod:`slipest.features` first (:func:`slipest.inverse.simdata.simulate_features` with
-``grids=True`` gives the smoothed signal to prototype it on), then to a
-set here.
+replaced by the energy moments (``e_cent``, ``e_spread``); the 14 and those four moments (the model shipped
+before); and the shipped model's 20: those 18 with the spectrum's skew ``spec_skew`` and the second half's
+centroid ``spec_cent2``. A new candidate is added to :mod:`slipest.features` first
+(:func:`slipest.inverse.simdata.simulate_features` with ``grids=True`` gives the smoothed signal to prototype
+it on), then to a set here.
 
     python tools/feature_study.py                      # 1 kHz, 0.01 g, 0.63 rad/s, seed 0: about 2 min
     python tools/feature_study.py --omega 0.4 --rate 250 --noise 0.025
@@ -69,8 +68,8 @@ STEPPED_FREQ = ("zc_rate", "osc_freq")
 STEPPED_ENERGY = ("energy_q10", "energy_q50", "energy_q90")
 SMOOTH_FREQ = ("spec_cent", "spec_bw")
 SMOOTH_ENERGY = ("e_cent", "e_spread")
-#: The spectrum's skew and the second half's centroid: computed by slipest.features, not in the shipped model
-#: (docs/estimator.md, "two more smooth features").
+#: The spectrum's skew and the second half's centroid, the last two the shipped model took (docs/estimator.md,
+#: "two more smooth features").
 EXTRA_SPECTRAL = ("spec_skew", "spec_cent2")
 #: The feature sets compared.
 #: The 14 features the model had before the moments.
@@ -79,8 +78,8 @@ FEATURE_SETS = {
     "the 14 before the moments": STEPPED_SET,
     "crossings -> spectral moments": [n for n in STEPPED_SET if n not in STEPPED_FREQ] + list(SMOOTH_FREQ),
     "quantiles -> energy moments": [n for n in STEPPED_SET if n not in STEPPED_ENERGY] + list(SMOOTH_ENERGY),
-    "shipped: the 14 + the moments (18)": list(MODEL_FEATURES),
-    "the 18 + spec_skew, spec_cent2 (20)": list(MODEL_FEATURES) + list(EXTRA_SPECTRAL),
+    "the 14 + four moments (18)": STEPPED_SET + list(SMOOTH_FREQ + SMOOTH_ENERGY),
+    "shipped: the 18 + spec_skew, spec_cent2 (20)": list(MODEL_FEATURES),
 }
 
 
@@ -203,7 +202,7 @@ def main(argv=None) -> int:
     for label, r in out.items():
         print(f"  {label:30s}" + "".join(f"  {r['rmse'][str(t)]:11.4f}" for t in SOIL_TEMPERS)
               + f"  {r['rmse']['known']:10.4f}")
-    r2 = out["the 18 + spec_skew, spec_cent2 (20)"]["r2"]
+    r2 = out["shipped: the 18 + spec_skew, spec_cent2 (20)"]["r2"]
     print("  R^2 of the means: " + ", ".join(f"{k} {r2[k]:.3f}" for k in STEPPED_FREQ + STEPPED_ENERGY + SMOOTH_FREQ
                                              + SMOOTH_ENERGY + EXTRA_SPECTRAL))
     if args.json:

@@ -61,8 +61,8 @@ N_COV_KNOTS = 5
 #: Variables of a node's polynomial, in order (the leg speed selects the nodes).
 VARIABLES = ("slip", "kS", "phiS", "dphi", "noise_smooth")
 #: The smooth moments of the window (spectral and energy-weighted), integrals where the crossing counts and the
-#: energy quantiles step (docs/estimator.md, "four smooth features").
-MOMENT_FEATURES = ("spec_cent", "spec_bw", "e_cent", "e_spread")
+#: energy quantiles step (docs/estimator.md, "four smooth features" and "two more smooth features").
+MOMENT_FEATURES = ("spec_cent", "spec_bw", "e_cent", "e_spread", "spec_skew", "spec_cent2")
 #: Features the shipped model uses: the smoothed, noise-referred ones (``delta_a``, the raw max - min, grows
 #: with the IMU's noise and rate; ``n_crossings`` repeats ``zc_rate``; ``noise``, ``omega``, ``noise_smooth``
 #: are inputs; ``stick_mean`` was too noisy to help), then :data:`MOMENT_FEATURES`.
@@ -494,12 +494,19 @@ _CACHE: dict = {}
 
 
 def load_inverse_model(path=None) -> FeatureSurrogate:
-    """Load the inverse model (default: the shipped ``slipest/data/inverse_model.npz``; cached).
+    """Load the inverse model (default: the shipped ``slipest/data/inverse_model.npz``; cached per file and
+    its modification time and size, so a file written again is read again).
 
     Raises :class:`InverseModelError` naming the file when it is missing, unreadable, of another format
     version or malformed.
     """
-    key = None if path is None else str(path)
+    key = None
+    if path is not None:
+        try:
+            st = Path(path).stat()
+            key = (str(Path(path).resolve()), st.st_mtime_ns, st.st_size)
+        except OSError:
+            key = str(path)  # missing or unreadable: not cached, the load below says which
     if key in _CACHE:
         return _CACHE[key]
     if path is None:
