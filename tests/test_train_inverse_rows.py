@@ -62,6 +62,7 @@ def test_added_features_and_the_slip_tempering_go_into_the_model_and_bad_ones_ar
     assert m.features == tuple(MODEL_FEATURES) + ("delta_a", "stick_mean")
     assert m.coef.shape[-1] == len(m.features) and m.cov_coef.shape[-1] == len(m.features)
     assert train_inverse.main(TINY + rows + ["--slip-temper", "0.5", "--out", str(out)]) == 0
+    # the same path written again is read again (load_inverse_model's cache is keyed by the file's state)
     assert load_inverse_model(out).meta["estimator"]["slip_temper"] == 0.5
     capsys.readouterr()
     with pytest.raises(SystemExit) as e:
