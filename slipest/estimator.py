@@ -355,6 +355,10 @@ class SoilSlipEstimator(CycleEstimator):
     ):
         self.model = model or load_inverse_model()
         stated = self.model.meta.get("estimator", {})
+        unknown = sorted(set(stated) - set(MODEL_SETTINGS))
+        if unknown:  # a setting the model was tuned with that this estimator would silently not apply
+            raise ValueError(f"the inverse model's meta['estimator'] states {unknown}, which this slipest does not "
+                             f"know (it knows {list(MODEL_SETTINGS)})")
         slip_temper = float(stated.get("slip_temper", DEFAULT_SLIP_TEMPER) if slip_temper is None else slip_temper)
         gross_misfit = float(stated.get("gross_misfit", DEFAULT_GROSS_MISFIT) if gross_misfit is None else gross_misfit)
         if not 0.0 <= hazard < 1.0:

@@ -345,6 +345,8 @@ def test_slip_tempering_and_gross_misfit_come_from_the_model_file_unless_given()
     assert (est.slip_temper, est.gross_misfit) == (DEFAULT_SLIP_TEMPER, DEFAULT_GROSS_MISFIT)
     with pytest.raises(ValueError, match="slip_temper"):
         SoilSlipEstimator(model=replace(shipped, meta=dict(shipped.meta, estimator={"slip_temper": 0.0})))
+    with pytest.raises(ValueError, match="slip_tempr"):  # a misspelt setting is not silently left out
+        SoilSlipEstimator(model=replace(shipped, meta=dict(shipped.meta, estimator={"slip_tempr": 0.3})))
 
 
 def test_compiled_whitening_gives_the_mahalanobis_distance(change_stream):
