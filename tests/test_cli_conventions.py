@@ -207,8 +207,9 @@ def test_live_serial_from_a_config_file_prints_json_lines_that_replay_agrees_wit
         cfg = _config(tmp_path, f'port = "{serial_device(dev)}"\nwheel = [1]\nformat = "jsonl"\nrecord = "rec.csv"\n'
                       'idle-timeout = 3\nduration = 60\nlog-level = "WARNING"\n')
         est = procs.add(slipest_cmd("serial", "--config", str(cfg)))
-        # (hang guards: two wheels' kernels compiled cold in both processes took over 60 s on 2 cores shared with
-        # another test suite; the device blocks on the pty while the estimator compiles)
+        # (hang guards. Under heavy load, two test suites on 2 cores with kernels compiled cold, the device has
+        # also not finished in 180 s, so it is a hang there, not slowness; cause not found yet, perhaps the
+        # estimator leaving on its 3 s idle timeout before the device streams, which then blocks on the pty)
         assert dev.wait(180) == 0, dev.stderr
         stop_once_said(est, ": disconnected (")  # the device's end read (a WARNING): not 3 s of idle later
         assert est.wait(180) == 0, est.stderr
