@@ -328,7 +328,11 @@ class Device:
 
     def _wait_for_peer(self) -> None:
         deadline = None if self.wait_peer is None else time.monotonic() + self.wait_peer
+        since, said = time.monotonic(), False
         while not self.stop.is_set() and not self.link.ready():
+            if not said and time.monotonic() - since > 5.0:  # ready to stream, no reader (gone, or not come yet)
+                self.announce(f"ready; waiting for a reader on {self.link.name}")
+                said = True
             if deadline is not None and time.monotonic() > deadline:
                 raise TimeoutError(f"no peer connected to {self.link.name} within {self.wait_peer:g} s")
             time.sleep(0.01)

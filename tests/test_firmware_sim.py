@@ -389,6 +389,28 @@ def test_device_stops_cleanly_on_sigterm_and_still_writes_its_report(tmp_path):
     assert proc.lines[-1] == "firmware-sim: stopped"
 
 
+def test_a_serial_device_with_no_reader_says_it_waits_for_one_and_streams_once_one_comes():
+    """A device ready to stream whose reader never came (or left before it streamed) says so, then streams."""
+    proc = firmware_sim("serial", "--cycles", "1", "--speed", "16")
+    try:
+        port = serial_device(proc)
+        proc.wait_line(rf"^firmware-sim: ready; waiting for a reader on {port}$", timeout=60)
+        assert not any("streaming" in line for line in proc.lines)
+        got = b""
+        with serial.Serial(port, timeout=0.1) as ser:
+            deadline = time.monotonic() + 60
+            while proc.p.poll() is None and time.monotonic() < deadline:  # read it all: the device ends then
+                try:
+                    got += ser.read(65536)
+                except serial.SerialException:  # the device closed its end
+                    break
+        assert proc.wait(30) == 0
+        assert any(line.startswith("firmware-sim: streaming") for line in proc.lines)
+        assert len(FrameDecoder().feed(got)) > 1000  # one leg cycle at 1 kHz
+    finally:
+        proc.stop()
+
+
 def test_cli_refuses_byte_corruption_on_can():
     proc = firmware_sim("can", "-i", "virtual", "-c", "x", "--corrupt-rate", "0.01")
     assert proc.wait(30) == 2
