@@ -46,7 +46,8 @@ budget too:
 
 * at most ``max_buffer`` bytes (32 MiB) queued for all clients together;
   past it the client with the most bytes queued (the slowest) is
-  disconnected (``clients_dropped``), then the next, until the queues fit;
+  disconnected (``clients_dropped``; reset, so the bytes the kernel held
+  for it go too), then the next, until the queues fit;
 * at most ``max_clients`` connections (256); past it a new one takes the
   place of the slowest client if one has bytes queued (dropped), else it is
   answered ``< error too many clients >`` and closed (``clients_refused``).
@@ -86,6 +87,7 @@ import logging
 import re
 import signal
 import socket
+import struct
 import threading
 import time
 from typing import Callable, Iterable
@@ -135,6 +137,19 @@ def _loopback_host(host: str) -> str:
     if not address.is_loopback:
         raise ValueError(f"refusing to listen on {host!r}: only loopback addresses (127.0.0.1) are allowed")
     return host
+
+
+def _reset_on_close(transport) -> None:
+    """Make the transport's close a reset (SO_LINGER 0): the kernel sends RST at once and frees the bytes still
+    in its send buffer.  A plain close would queue its FIN behind them, and a client that does not read (a zero
+    window) would hold that buffer and its connection open until the kernel gives up, minutes later."""
+    sock = transport.get_extra_info("socket")
+    if sock is None:
+        return
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+    except OSError as exc:  # already closed: the abort that follows has nothing left to free
+        log.debug("SO_LINGER on a dropped client failed: %s", exc)
 
 
 class _Client(asyncio.Protocol):
@@ -429,6 +444,7 @@ class SocketcandServer:
         self.counters["clients_dropped"] += 1
         self._forget(client)
         if client.transport is not None:
+            _reset_on_close(client.transport)
             client.transport.abort()
 
     def _queued(self, client: _Client, size: int) -> None:
