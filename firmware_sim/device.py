@@ -330,8 +330,8 @@ class Device:
         deadline = None if self.wait_peer is None else time.monotonic() + self.wait_peer
         since, said = time.monotonic(), False
         while not self.stop.is_set() and not self.link.ready():
-            if not said and time.monotonic() - since > 5.0:  # ready to stream, no reader (gone, or not come yet)
-                self.announce(f"ready; waiting for a reader on {self.link.name}")
+            if not said and time.monotonic() - since > 5.0:  # no peer (a pty's reader gone or not come, a bus down)
+                self.announce(f"ready to stream; waiting for a peer on {self.link.name}")
                 said = True
             if deadline is not None and time.monotonic() > deadline:
                 raise TimeoutError(f"no peer connected to {self.link.name} within {self.wait_peer:g} s")

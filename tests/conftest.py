@@ -4,11 +4,11 @@ Many tests run the virtual device and the estimator as subprocesses (real
 ptys, real buses).  On a cold numba cache (a fresh clone: CI, a new user)
 each of those subprocesses compiled the kernels itself: about 55 s for the
 device and 25 s for the estimator on an idle 2-core machine, and 135 s before
-a device streamed with both test workers busy.  A live run's ``--duration``
+a device streamed with four CPU-bound processes on the 2 cores.  A live run's ``--duration``
 guard then ran out before its device had streamed a frame, and the device
 waited for a reader that was gone.  Compiling once here, before pytest-xdist
-starts its workers, puts every subprocess on the cache (the device streams
-after about 8 s under the same load).
+starts its workers, puts every subprocess on the cache (the device then
+streams after about 8 s under the same load).
 """
 
 from __future__ import annotations

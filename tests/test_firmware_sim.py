@@ -390,11 +390,12 @@ def test_device_stops_cleanly_on_sigterm_and_still_writes_its_report(tmp_path):
 
 
 def test_a_serial_device_with_no_reader_says_it_waits_for_one_and_streams_once_one_comes():
-    """A device ready to stream whose reader never came (or left before it streamed) says so, then streams."""
+    """A device ready to stream whose reader never came (or left before it streamed) says so, then streams once one
+    comes."""
     proc = firmware_sim("serial", "--cycles", "1", "--speed", "16")
     try:
         port = serial_device(proc)
-        proc.wait_line(rf"^firmware-sim: ready; waiting for a reader on {port}$", timeout=60)
+        proc.wait_line(rf"^firmware-sim: ready to stream; waiting for a peer on {port}$", timeout=60)
         assert not any("streaming" in line for line in proc.lines)
         got = b""
         with serial.Serial(port, timeout=0.1) as ser:
