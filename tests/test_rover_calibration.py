@@ -61,6 +61,9 @@ def test_rover_surrogate_adds_the_discrepancy_and_the_extra_covariance():
     np.testing.assert_allclose(r.mean_on_grid(slips, g.kS, g.phiS, g.dphi, 0.63, 0.004),
                                m.mean_on_grid(slips, g.kS, g.phiS, g.dphi, 0.63, 0.004)
                                + d.on_grid(slips, g.kS, g.phiS, g.dphi), rtol=1e-10, atol=1e-12)
+    w = np.random.default_rng(5).normal(size=(len(m.features),) * 2)  # the tables' whitener, on the corrected mean
+    np.testing.assert_allclose(r.mean_on_grid(slips, g.kS, g.phiS, g.dphi, 0.63, 0.004, right=w),
+                               r.mean_on_grid(slips, g.kS, g.phiS, g.dphi, 0.63, 0.004) @ w, rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(r.cov(0.63, 0.004), m.cov(0.63, 0.004) + q, rtol=1e-12)
 
 

@@ -121,6 +121,20 @@ def test_grid_evaluation_equals_the_pointwise_mean(which, request):
                 assert np.allclose(grid[a, b, c], model.mean(x), rtol=1e-9, atol=1e-9)
 
 
+@pytest.mark.parametrize("which", ["fitted", "patched"])
+def test_a_matrix_on_the_right_of_the_grid_mean_is_the_grid_mean_times_it(which, request):
+    """The estimator's tables multiply the mean by the whitener through the coefficients (cheaper): the same
+    numbers as multiplying the grid, for a square and a non-square matrix."""
+    model = request.getfixturevalue(which)
+    nodes = np.array([0.0, 0.2, 0.25, 0.29, 0.45, 0.52])
+    levels = (nodes, np.array([600.0, 900.0, 1400.0]), np.array([0.3, 0.6]), np.array([0.05, 0.2, 0.3]))
+    grid = model.mean_on_grid(*levels, 0.7, 0.013)
+    rng = np.random.default_rng(3)
+    for right in (rng.normal(size=(3, 3)), rng.normal(size=(3, 2))):
+        np.testing.assert_allclose(model.mean_on_grid(*levels, 0.7, 0.013, right=right), grid @ right,
+                                   rtol=1e-9, atol=1e-9 * np.abs(grid).max())
+
+
 def test_patch_weights_sum_to_one_and_blend_smoothly_across_each_overlap():
     p = np.array([[0.0, 0.3], [0.2, 0.4], [0.35, 0.55]])
     s = np.linspace(-0.1, 0.7, 801)

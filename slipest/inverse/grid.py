@@ -169,11 +169,9 @@ class GridTables:
 
     def _build(self, omega: float, noise_smooth: float) -> Table:
         g = self.grid
-        mu = self.model.mean_on_grid(self.nodes, g.kS, g.phiS, g.dphi, omega, noise_smooth)  # (nk, np, nd, K, d)
-        mu = mu[g.mask]  # (S, K, d)
-        r = self.model.cov(omega, noise_smooth)
-        w = whitener(r)  # w w^T = R^-1
-        columnar, step = quantise((mu @ w).transpose(2, 1, 0))
+        w = whitener(self.model.cov(omega, noise_smooth))  # w w^T = R^-1
+        mu_w = self.model.mean_on_grid(self.nodes, g.kS, g.phiS, g.dphi, omega, noise_smooth, right=w)[g.mask]
+        columnar, step = quantise(mu_w.transpose(2, 1, 0))  # (d, K, S) of the whitened means
         columnar.flags.writeable = False
         self.builds += 1
         return Table(columnar, step, w, omega, noise_smooth)

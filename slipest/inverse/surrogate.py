@@ -419,9 +419,12 @@ class FeatureSurrogate:
             r = sum(w * np.tensordot(h, self.cov_coef[k], axes=1) for k, w in self.node_weights(omega))
         return nearest_positive_definite(r)
 
-    def mean_on_grid(self, slip_nodes, kS_levels, phiS_levels, dphi_levels, omega: float, noise_smooth: float) -> np.ndarray:
+    def mean_on_grid(self, slip_nodes, kS_levels, phiS_levels, dphi_levels, omega: float, noise_smooth: float,
+                     right: np.ndarray | None = None) -> np.ndarray:
         """Mean features on a tensor grid at one leg speed [rad/s] and smoothed noise [g]:
-        ``(nk, nphiS, ndphi, K, d)``, contracted one variable at a time (matrix products)."""
+        ``(nk, nphiS, ndphi, K, d)``, contracted one variable at a time (matrix products).  ``right``: a
+        ``(d, m)`` matrix (the estimator's whitener) the mean features are multiplied by, ``(nk, nphiS, ndphi,
+        K, m)``: applied to the coefficients, the same (to rounding) as multiplying the result, and cheaper."""
         us = (float(noise_smooth) - self.center[4]) / self.halfwidth[4]
         ps = np.polynomial.legendre.legvander(np.array([us]), int(self.terms[:, 4].max()))[0][self.terms[:, 4]]
         slip_nodes = np.asarray(slip_nodes, dtype=float)
@@ -432,6 +435,8 @@ class FeatureSurrogate:
             if not used.any():
                 continue
             coef = sum(w * self.coef[k, j] for k, w in self.node_weights(omega)) * ps[:, None]
+            if right is not None:
+                coef = coef @ right
             c, h = patch_norm(self.center, self.halfwidth, patch)
             part = legendre_on_grid(self.terms[:, :4], coef, c[:4], h[:4],
                                     (slip_nodes[used], kS_levels, phiS_levels, dphi_levels))

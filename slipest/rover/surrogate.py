@@ -141,10 +141,11 @@ class RoverSurrogate(FeatureSurrogate):
         return super().mean(x) + self.discrepancy.evaluate(x[..., :4])
 
     def mean_on_grid(self, slip_nodes, kS_levels, phiS_levels, dphi_levels, omega: float,
-                     noise_smooth: float) -> np.ndarray:
-        """As :meth:`FeatureSurrogate.mean_on_grid`, corrected."""
+                     noise_smooth: float, right: np.ndarray | None = None) -> np.ndarray:
+        """As :meth:`FeatureSurrogate.mean_on_grid`, corrected (``right`` multiplies the corrected mean)."""
         levels = (slip_nodes, kS_levels, phiS_levels, dphi_levels)
-        return _base_grid(self, levels, omega, noise_smooth) + self.discrepancy.on_grid(*levels)
+        grid = _base_grid(self, levels, omega, noise_smooth) + self.discrepancy.on_grid(*levels)
+        return grid if right is None else grid @ right
 
     def cov(self, omega: float, noise_smooth: float) -> np.ndarray:
         """``R + Q`` ``(d, d)`` (:meth:`FeatureSurrogate.cov` plus the extra covariance)."""
