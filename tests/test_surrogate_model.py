@@ -219,6 +219,35 @@ def test_file_round_trip_and_other_versions_refused(which, request, tmp_path):
         load_inverse_model(old)
 
 
+@pytest.mark.parametrize("meta, message", [
+    ({"estimator": {"slip_temper": "0.3x"}}, r"meta\['estimator'\]\['slip_temper'\] must be a finite number, got '0.3x'"),
+    ({"estimator": {"gross_misfit": float("nan")}}, r"meta\['estimator'\]\['gross_misfit'\] must be a finite number"),
+    ({"estimator": [0.3]}, r"meta\['estimator'\] must be a mapping"),
+    ({"fit_level": None}, r"meta\['fit_level'\] must be a finite number, got None"),
+    ({"fit_level_quantiles": {"q50": True}}, r"meta\['fit_level_quantiles'\]\['q50'\] must be a finite number"),
+])
+def test_a_model_file_whose_estimator_numbers_are_not_numbers_is_refused_naming_the_file_and_the_number(
+        fitted, tmp_path, meta, message):
+    """The numbers the estimator reads from a model file's meta: an error at load naming the file and the entry,
+    not Python's own conversion error at the estimator's start."""
+    from dataclasses import replace
+
+    path = tmp_path / "m.npz"
+    good = dict(fitted.meta, fit_level=80.0, fit_level_quantiles={"q50": 20.0},
+                estimator={"slip_temper": 0.3, "gross_misfit": 6.0})
+    save_inverse_model(replace(fitted, meta=good), path)
+    assert load_inverse_model(path).meta["estimator"]["slip_temper"] == 0.3
+    bad = fitted.meta | good | meta
+    with pytest.raises(InverseModelError, match=message):
+        replace(fitted, meta=bad)
+    with np.load(path) as z:
+        doc = {k: z[k] for k in z.files}
+    doc["meta"] = np.array(json.dumps(bad))
+    np.savez(path, **doc)
+    with pytest.raises(InverseModelError, match=rf"inverse model file .*m\.npz: inverse model {message}"):
+        load_inverse_model(path)
+
+
 def test_unreadable_or_missing_model_file_is_a_clear_error(tmp_path):
     with pytest.raises(InverseModelError, match=r"inverse model file .*nope\.npz not found"):
         load_inverse_model(tmp_path / "nope.npz")

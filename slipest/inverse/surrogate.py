@@ -267,6 +267,20 @@ def fit_node(x5, y, terms: np.ndarray, center, halfwidth, patches=None, knots=No
     return coef, np.stack(cov_coef)
 
 
+def _check_numbers(meta: dict) -> None:
+    """The numbers the estimator reads from a model's ``meta`` (``fit_level``, ``fit_level_quantiles``, the
+    settings in ``estimator``) are finite numbers, else :class:`InverseModelError` naming the one that is not."""
+    found = [("meta['fit_level']", meta["fit_level"])] if "fit_level" in meta else []
+    for section in ("fit_level_quantiles", "estimator"):
+        part = meta.get(section, {})
+        if not isinstance(part, dict):
+            raise InverseModelError(f"inverse model meta[{section!r}] must be a mapping, got {part!r}")
+        found += [(f"meta[{section!r}][{key!r}]", value) for key, value in part.items()]
+    for where, value in found:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise InverseModelError(f"inverse model {where} must be a finite number, got {value!r}")
+
+
 @dataclass(frozen=True)
 class FeatureSurrogate:
     """``mu`` and ``R`` of the module docstring.
@@ -344,6 +358,7 @@ class FeatureSurrogate:
         for name in self.covered:
             if name not in ("phid_min", "omega") and name not in VARIABLES:
                 raise InverseModelError(f"inverse model 'covered' names an unknown variable {name!r}")
+        _check_numbers(self.meta)
 
     # ------------------------------------------------------------------ what it is for
     @property
