@@ -18,7 +18,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from slipest.inverse.grid import SoilGrid
+from slipest.inverse.grid import GridTables, SoilGrid, quantise
 from slipest.inverse.surrogate import load_inverse_model
 from slipest.io.log_csv import LogWriter
 from slipest.model.params import StickSlipParams
@@ -65,6 +65,15 @@ def test_rover_surrogate_adds_the_discrepancy_and_the_extra_covariance():
     np.testing.assert_allclose(r.mean_on_grid(slips, g.kS, g.phiS, g.dphi, 0.63, 0.004, right=w),
                                r.mean_on_grid(slips, g.kS, g.phiS, g.dphi, 0.63, 0.004) @ w, rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(r.cov(0.63, 0.004), m.cov(0.63, 0.004) + q, rtol=1e-12)
+    # the estimator's table of the rover model (its factors and the discrepancy's, quantised cell by cell) is the
+    # quantised whitened grid mean, to a count (the sums are ordered differently)
+    tables = GridTables(r, g, np.arange(0.0, 0.551, 0.02))
+    table = tables.get(0.63, 0.004)
+    mean = r.mean_on_grid(tables.nodes, g.kS, g.phiS, g.dphi, table.omega, table.noise_smooth, right=table.whitener)
+    counts, step = quantise(mean[g.mask].transpose(2, 1, 0))
+    np.testing.assert_allclose(table.step, step, rtol=1e-6)
+    off = np.abs(table.columnar.astype(np.int32) - counts)
+    assert off.max() <= 1 and np.count_nonzero(off) <= 1e-4 * off.size
 
 
 def _no_extra(model):

@@ -97,6 +97,45 @@ def quantise_into(x, limit, counts, step):
                 counts[d, k, s] = np.int16(min(max(q, -32767.0), 32767.0))
 
 
+@numba.njit(cache=True)
+def quantise_product_into(partial, basis_t, cells, limit, counts, step, rows):
+    """The counts of :func:`quantise_into` of the table ``sum_a basis_t[a, k] * partial[a, d, cells[s]]``,
+    computed cell by cell without the table (:func:`slipest.inverse.grid.quantise_product`).
+
+    ``partial``: ``(A, D, G)`` float64; ``basis_t``: ``(A, K)`` float64; ``cells``: ``(S,)`` int64 indices
+    into ``G``; ``counts``: ``(D, K, S)`` int16 and ``step`` ``(D,)`` float32, written as :func:`quantise_into`
+    writes them; ``rows``: ``(S, K)`` float64 scratch (one coordinate's values). The sum over ``a`` runs in
+    order, in float64."""
+    A, D, G = partial.shape
+    K = basis_t.shape[1]
+    S = cells.size
+    for d in range(D):
+        top = 0.0
+        for s in range(S):
+            g = cells[s]
+            row = rows[s]
+            for k in range(K):
+                row[k] = 0.0
+            for a in range(A):
+                c = partial[a, d, g]
+                b = basis_t[a]
+                for k in range(K):
+                    row[k] += c * b[k]
+            for k in range(K):
+                v = abs(row[k])
+                if v > top:
+                    top = v
+        t = min(top, limit)
+        step[d] = np.float32(t / 32767.0 if t > 0.0 else 1.0)
+        st = np.float64(step[d])
+        out = counts[d]
+        for s in range(S):
+            row = rows[s]
+            for k in range(K):
+                q = np.rint(row[k] / st)
+                out[k, s] = np.int16(min(max(q, -32767.0), 32767.0))
+
+
 @numba.njit(cache=True, fastmath=_NO_REASSOC)
 def grid_loglik(tc, tstep, fw, lp, node_width, scale, fit_level, dmat, lc, scratch, floor=1.0):
     """Cell log-likelihoods with the slip marginalised over the table's slip nodes.

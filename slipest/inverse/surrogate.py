@@ -103,25 +103,78 @@ def legendre_design(u: np.ndarray, terms: np.ndarray) -> np.ndarray:
 
 
 
-def legendre_on_grid(terms4: np.ndarray, coef: np.ndarray, center4, halfwidth4, levels) -> np.ndarray:
+def legendre_factors(terms4: np.ndarray, coef: np.ndarray, center4, halfwidth4, levels) -> tuple[np.ndarray, np.ndarray]:
     """A tensor Legendre polynomial in (slip, kS, phiS, dphi) (terms ``(T, 4)``, coefficients ``(T, d)``,
     normalisation ``u = (x - center4) / halfwidth4``) on the tensor grid of ``levels`` = (slip nodes, kS,
-    phiS, dphi levels): ``(nk, nphiS, ndphi, K, d)`` (a transposed view, not contiguous), contracted one
-    variable at a time (matrix products). Repeated terms add up."""
-    deg = int(terms4.max())
-    p = deg + 1
-    dense = np.zeros((p, p, p, p, coef.shape[1]))
-    np.add.at(dense, tuple(np.asarray(terms4).T), coef)
+    phiS, dphi levels), as two factors ``(partial, basis)``: ``partial`` ``(A, d, nk, nphiS, ndphi)``
+    contracted in kS, phiS and dphi for each slip degree ``a``, and ``basis`` ``(K, A)`` the slip's Legendre
+    basis at the nodes, so that the polynomial at node ``k`` is ``sum_a basis[k, a] * partial[a]``
+    (:func:`contract_slip`; the estimator's tables contract it cell by cell as they quantise,
+    :func:`slipest.inverse.grid.quantise_product`). Repeated terms add up.
+
+    Contracted one variable at a time, each over the terms that exist only (a total-degree basis has a
+    sixth of the dense tensor's terms): kS first, for each (slip, phiS, dphi) degree triple; then phiS, for
+    each (slip, dphi) pair; then dphi, for each slip degree over the dphi degrees it has."""
+    t = np.asarray(terms4, dtype=np.int64)
+    coef = np.asarray(coef, dtype=float)
+    deg = int(t.max())
+    p, d = deg + 1, coef.shape[1]
     levels = [np.asarray(v, dtype=float) for v in levels]
     bases = [np.polynomial.legendre.legvander((lv - center4[j]) / halfwidth4[j], deg) for j, lv in enumerate(levels)]
-    # one variable at a time, each a matrix product: (slip a, kS b, phiS c, dphi e, f) -> (kS, phiS, dphi, slip, f);
-    # the variable with the fewest levels per coefficient first, so the intermediates stay small (kS: 11 levels
-    # for 15 coefficients; the shipped grid's order takes 30 % less time than dphi first)
-    x = np.tensordot(dense, bases[1], axes=([1], [1]))  # (a, c, e, f, kS)
-    x = np.tensordot(x, bases[2], axes=([1], [1]))  # (a, e, f, kS, phiS)
-    x = np.tensordot(x, bases[3], axes=([1], [1]))  # (a, f, kS, phiS, dphi)
-    x = np.tensordot(x, bases[0], axes=([0], [1]))  # (f, kS, phiS, dphi, slip)
-    return x.transpose(1, 2, 3, 4, 0)  # a view: callers gather cells from it (a copy cost a third of a build)
+    nk, nphi = levels[1].size, levels[2].size
+    triples, of_term, pairs, of_triple, dphi_degrees = _degree_groups(t)
+    # kS, per (slip, phiS, dphi) degree triple: (triples, kS degree, d) -> (triples, d, kS)
+    c1 = np.zeros((len(triples), p, d))
+    np.add.at(c1, (of_term, t[:, 1]), coef)
+    x1 = np.matmul(c1.transpose(0, 2, 1), bases[1].T)
+    # phiS, per (slip, dphi) pair: (pairs, phiS degree, d, kS) -> (pairs, d, kS, phiS)
+    c2 = np.zeros((len(pairs), p, d, nk))
+    c2[of_triple, triples[:, 1]] = x1  # each (pair, phiS degree) once: the triples are unique
+    x2 = np.tensordot(c2, bases[2], axes=([1], [1]))
+    # dphi, per slip degree over the dphi degrees it has: (A, d, kS, phiS, dphi)
+    c3 = np.zeros((p, p) + x2.shape[1:])
+    c3[pairs[:, 0], pairs[:, 1]] = x2
+    partial = np.empty((p, d, nk, nphi, levels[3].size))
+    for a in range(p):
+        n = dphi_degrees[a]
+        if n:
+            partial[a] = np.tensordot(c3[a, :n], bases[3][:, :n], axes=([0], [1]))
+        else:
+            partial[a] = 0.0
+    return partial, bases[0]
+
+
+_DEGREE_GROUPS: dict = {}
+
+
+def _degree_groups(terms4: np.ndarray) -> tuple:
+    """The grouping of :func:`legendre_factors` for terms ``(T, 4)``: the unique (slip, phiS, dphi) degree
+    triples and each term's, the unique (slip, dphi) pairs and each triple's, and for each slip degree the
+    number of dphi degrees to sum (its largest plus one; 0 if absent). Cached per terms (a model has a few)."""
+    key = (terms4.shape, terms4.tobytes())
+    hit = _DEGREE_GROUPS.get(key)
+    if hit is None:
+        triples, of_term = np.unique(terms4[:, [0, 2, 3]], axis=0, return_inverse=True)
+        pairs, of_triple = np.unique(triples[:, [0, 2]], axis=0, return_inverse=True)
+        dphi_degrees = np.zeros(int(terms4.max()) + 1, dtype=np.int64)
+        np.maximum.at(dphi_degrees, pairs[:, 0], pairs[:, 1] + 1)
+        if len(_DEGREE_GROUPS) >= 16:
+            _DEGREE_GROUPS.clear()
+        hit = _DEGREE_GROUPS[key] = (triples, of_term.reshape(-1), pairs, of_triple.reshape(-1), dphi_degrees)
+    return hit
+
+
+def contract_slip(partial: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """The grid of the factors of :func:`legendre_factors` (``partial`` ``(A, d, nk, nphiS, ndphi)``, ``basis``
+    ``(K, A)``): ``(nk, nphiS, ndphi, K, d)``, a transposed view of a contiguous ``(d, nk, nphiS, ndphi, K)``
+    (callers gather cells from it: a copy would cost a third of a table build)."""
+    return np.tensordot(partial, basis, axes=([0], [1])).transpose(1, 2, 3, 4, 0)
+
+
+def legendre_on_grid(terms4: np.ndarray, coef: np.ndarray, center4, halfwidth4, levels) -> np.ndarray:
+    """The polynomial of :func:`legendre_factors` on its grid, ``(nk, nphiS, ndphi, K, d)`` (a transposed view,
+    :func:`contract_slip`)."""
+    return contract_slip(*legendre_factors(terms4, coef, center4, halfwidth4, levels))
 
 
 def check_patches(patches) -> np.ndarray:
@@ -434,33 +487,42 @@ class FeatureSurrogate:
             r = sum(w * np.tensordot(h, self.cov_coef[k], axes=1) for k, w in self.node_weights(omega))
         return nearest_positive_definite(r)
 
-    def mean_on_grid(self, slip_nodes, kS_levels, phiS_levels, dphi_levels, omega: float, noise_smooth: float,
-                     right: np.ndarray | None = None) -> np.ndarray:
-        """Mean features on a tensor grid at one leg speed [rad/s] and smoothed noise [g]:
-        ``(nk, nphiS, ndphi, K, d)``, contracted one variable at a time (matrix products).  ``right``: a
-        ``(d, m)`` matrix (the estimator's whitener) the mean features are multiplied by, ``(nk, nphiS, ndphi,
-        K, m)``: applied to the coefficients, the same (to rounding) as multiplying the result, and cheaper."""
+    def grid_factors(self, slip_nodes, kS_levels, phiS_levels, dphi_levels, omega: float, noise_smooth: float,
+                     right: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Mean features on a tensor grid at one leg speed [rad/s] and smoothed noise [g], as the two factors of
+        :func:`legendre_factors`: ``partial`` ``(A, d, nk, nphiS, ndphi)`` and ``basis`` ``(K, A)`` (the slip
+        patches' factors stacked along ``A``, each patch's basis rows weighted by its blend,
+        :func:`patch_weights`); :func:`contract_slip` makes the grid (:meth:`mean_on_grid`). ``right``: a
+        ``(d, m)`` matrix (the estimator's whitener) the mean features are multiplied by (``partial`` then
+        ``(A, m, ...)``): applied to the coefficients, the same (to rounding) as multiplying the grid, and
+        cheaper."""
         us = (float(noise_smooth) - self.center[4]) / self.halfwidth[4]
         ps = np.polynomial.legendre.legvander(np.array([us]), int(self.terms[:, 4].max()))[0][self.terms[:, 4]]
         slip_nodes = np.asarray(slip_nodes, dtype=float)
         weights = patch_weights(slip_nodes, self.patches)
-        out = None
+        parts, bases = [], []
         for j, patch in enumerate(self.patches):
-            used = weights[:, j] > 0
-            if not used.any():
+            if not np.any(weights[:, j] > 0):
                 continue
             coef = sum(w * self.coef[k, j] for k, w in self.node_weights(omega)) * ps[:, None]
             if right is not None:
                 coef = coef @ right
             c, h = patch_norm(self.center, self.halfwidth, patch)
-            part = legendre_on_grid(self.terms[:, :4], coef, c[:4], h[:4],
-                                    (slip_nodes[used], kS_levels, phiS_levels, dphi_levels))
+            partial, basis = legendre_factors(self.terms[:, :4], coef, c[:4], h[:4],
+                                              (slip_nodes, kS_levels, phiS_levels, dphi_levels))
             if np.all(weights[:, j] == 1.0):
-                return part  # one patch holds every node (the weights sum to one: the others were skipped)
-            if out is None:
-                out = np.zeros(part.shape[:3] + (slip_nodes.size,) + part.shape[4:])
-            out[:, :, :, used] += weights[used, j, None] * part
-        return out
+                return partial, basis  # one patch holds every node (the weights sum to one: the others were skipped)
+            parts.append(partial)
+            bases.append(basis * weights[:, j, None])  # 0 on the nodes outside the patch
+        return np.concatenate(parts), np.concatenate(bases, axis=1)
+
+    def mean_on_grid(self, slip_nodes, kS_levels, phiS_levels, dphi_levels, omega: float, noise_smooth: float,
+                     right: np.ndarray | None = None) -> np.ndarray:
+        """Mean features on a tensor grid at one leg speed [rad/s] and smoothed noise [g]: ``(nk, nphiS, ndphi,
+        K, d)`` (a transposed view, :func:`contract_slip` of :meth:`grid_factors`); ``right`` as there
+        (``(nk, nphiS, ndphi, K, m)``)."""
+        return contract_slip(*self.grid_factors(slip_nodes, kS_levels, phiS_levels, dphi_levels, omega,
+                                                noise_smooth, right))
 
     # ------------------------------------------------------------------ file
     def save(self, path) -> Path:
@@ -561,5 +623,5 @@ __all__ = ["FORMAT_VERSION", "READ_VERSIONS", "VARIABLES", "MODEL_FEATURES", "MO
            "node_terms",
            "check_patches", "one_patch", "patch_weights", "patch_norm", "N_COV_KNOTS", "default_cov_knots",
            "check_cov_knots", "cov_knot_weights", "nearest_positive_definite", "fit_node",
-           "legendre_design", "legendre_on_grid", "whitener",
+           "legendre_design", "legendre_factors", "contract_slip", "legendre_on_grid", "whitener",
            "FeatureSurrogate", "load_inverse_model", "save_inverse_model"]

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slipest.inverse.surrogate import legendre_design, legendre_on_grid
+from slipest.inverse.surrogate import contract_slip, legendre_design, legendre_factors
 
 #: The variables of a discrepancy, in order.
 VARIABLES = ("slip", "kS", "phiS", "dphi")
@@ -86,11 +86,19 @@ class Discrepancy:
         x4 = np.asarray(x4, dtype=float)
         return (self.basis(x4) @ self.coef).reshape(x4.shape[:-1] + (self.coef.shape[1],))
 
+    def factors(self, slip_nodes, kS_levels, phiS_levels, dphi_levels,
+                right: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``D`` on a tensor grid as the factors of :func:`~slipest.inverse.surrogate.legendre_factors`
+        (``partial`` ``(A, d, nk, nphiS, ndphi)``, ``basis`` ``(K, A)``); ``right``: a ``(d, m)`` matrix ``D``
+        is multiplied by (through the coefficients)."""
+        coef = self.coef if right is None else self.coef @ right
+        return legendre_factors(self.terms, coef, self.center, self.halfwidth,
+                                (slip_nodes, kS_levels, phiS_levels, dphi_levels))
+
     def on_grid(self, slip_nodes, kS_levels, phiS_levels, dphi_levels) -> np.ndarray:
         """``D`` on a tensor grid, ``(nk, nphiS, ndphi, K, d)`` (the layout of
         :meth:`~slipest.inverse.surrogate.FeatureSurrogate.mean_on_grid`)."""
-        return legendre_on_grid(self.terms, self.coef, self.center, self.halfwidth,
-                                (slip_nodes, kS_levels, phiS_levels, dphi_levels))
+        return contract_slip(*self.factors(slip_nodes, kS_levels, phiS_levels, dphi_levels))
 
     def plus(self, other: "Discrepancy") -> "Discrepancy":
         """The sum of two discrepancies on the same normalisation (their terms merged)."""

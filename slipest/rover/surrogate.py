@@ -41,25 +41,27 @@ from slipest.inverse.surrogate import FeatureSurrogate
 from slipest.rover.discrepancy import Discrepancy
 
 
-#: The shipped surrogate's mean on a grid, kept for the rover models built on it (calibration builds many: each
-#: would otherwise recompute the same 6 MB for every leg speed and noise); least recently used first out.
-_BASE_GRIDS: OrderedDict = OrderedDict()
-_BASE_GRIDS_KEPT = 12
+#: The shipped surrogate's mean on a grid (:meth:`FeatureSurrogate.grid_factors`, not whitened), kept for the rover
+#: models built on it (calibration builds many: each would otherwise recompute the same factors for every leg
+#: speed and noise); least recently used first out.
+_BASE_FACTORS: OrderedDict = OrderedDict()
+_BASE_FACTORS_KEPT = 12
 
 
-def _base_grid(model: FeatureSurrogate, levels, omega: float, noise_smooth: float) -> np.ndarray:
+def _base_factors(model: FeatureSurrogate, levels, omega: float, noise_smooth: float) -> tuple[np.ndarray, np.ndarray]:
     key = (id(model.coef), tuple(np.asarray(v, dtype=float).tobytes() for v in levels), float(omega),
            float(noise_smooth))
-    hit = _BASE_GRIDS.get(key)
+    hit = _BASE_FACTORS.get(key)
     if hit is not None and hit[0] is model.coef:
-        _BASE_GRIDS.move_to_end(key)
+        _BASE_FACTORS.move_to_end(key)
         return hit[1]
-    grid = FeatureSurrogate.mean_on_grid(model, *levels, omega, noise_smooth)
-    grid.flags.writeable = False
-    _BASE_GRIDS[key] = (model.coef, grid)
-    while len(_BASE_GRIDS) > _BASE_GRIDS_KEPT:
-        _BASE_GRIDS.popitem(last=False)
-    return grid
+    factors = FeatureSurrogate.grid_factors(model, *levels, omega, noise_smooth)
+    for f in factors:
+        f.flags.writeable = False
+    _BASE_FACTORS[key] = (model.coef, factors)
+    while len(_BASE_FACTORS) > _BASE_FACTORS_KEPT:
+        _BASE_FACTORS.popitem(last=False)
+    return factors
 
 
 @dataclass(frozen=True)
@@ -140,12 +142,19 @@ class RoverSurrogate(FeatureSurrogate):
         x = np.asarray(x, dtype=float)
         return super().mean(x) + self.discrepancy.evaluate(x[..., :4])
 
-    def mean_on_grid(self, slip_nodes, kS_levels, phiS_levels, dphi_levels, omega: float,
-                     noise_smooth: float, right: np.ndarray | None = None) -> np.ndarray:
-        """As :meth:`FeatureSurrogate.mean_on_grid`, corrected (``right`` multiplies the corrected mean)."""
+    def grid_factors(self, slip_nodes, kS_levels, phiS_levels, dphi_levels, omega: float,
+                     noise_smooth: float, right: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """As :meth:`FeatureSurrogate.grid_factors`, corrected: the base model's factors and the discrepancy's,
+        stacked along the slip degrees (``right`` multiplies both; the base's, cached unmultiplied, along
+        their features)."""
         levels = (slip_nodes, kS_levels, phiS_levels, dphi_levels)
-        grid = _base_grid(self, levels, omega, noise_smooth) + self.discrepancy.on_grid(*levels)
-        return grid if right is None else grid @ right
+        partial, basis = _base_factors(self, levels, omega, noise_smooth)
+        if right is not None:
+            a, d = partial.shape[:2]
+            partial = np.matmul(np.asarray(right, dtype=float).T, partial.reshape(a, d, -1)).reshape(
+                (a, -1) + partial.shape[2:])
+        extra, extra_basis = self.discrepancy.factors(*levels, right=right)
+        return np.concatenate([partial, extra]), np.concatenate([basis, extra_basis], axis=1)
 
     def cov(self, omega: float, noise_smooth: float) -> np.ndarray:
         """``R + Q`` ``(d, d)`` (:meth:`FeatureSurrogate.cov` plus the extra covariance)."""
