@@ -78,8 +78,16 @@ def test_a_foxglove_client_gets_the_estimates_and_the_decimated_samples_the_esti
     # (a new channel's first messages wait for the viewers to subscribe; unless foxglove-sdk made the client
     # subscribe twice, see tests/foxglove_client.py, when the first one may come before it)
     may_miss = {-1} if client.resubscribed else set()
-    # five whole cycles, then (the run stopped at --cycles 5) the start of the sixth, reported 'partial'
-    assert sorted(printed) == [0, 1, 2, 3, 4, 5] and printed[5]["quality"] == "partial"
+    # five whole cycles, then (the run stopped at --cycles 5) the start of the sixth, reported 'partial'; unless
+    # the batch that closed the fifth also held the sixth's end (a loaded machine reads its socket late, and
+    # --cycles stops once N are reached, estimating what came rather than dropping it): then the sixth is whole
+    live = json.loads(report.read_text())
+    assert sorted(printed) == [0, 1, 2, 3, 4, 5]
+    assert live["estimation"]["wheel0"]["cycles"] == 6
+    if live["estimation"]["wheel0"]["qualities"].get("partial", 0):
+        assert printed[5]["quality"] == "partial"
+    else:
+        assert printed[5]["quality"] in ESTIMATED and printed[5]["slip"] is not None
     assert set(printed) - may_miss <= set(shown) <= set(printed)
     for k, m in shown.items():
         row = printed[k]
@@ -135,7 +143,6 @@ def test_a_foxglove_client_gets_the_estimates_and_the_decimated_samples_the_esti
     logs = [decode(ch, data) for _, data in client.of("/slipest/log")]
     assert any(x.message == "slipest can: 5 cycles reached" and x.level == 2 for x in logs)  # 2: INFO
 
-    live = json.loads(report.read_text())
     assert live["view"]["estimates"] == len(printed) and live["view"]["imu"] >= len(imu)
     assert live["view"]["queue_dropped"] == 0 and live["view"]["errors"] == 0
 
