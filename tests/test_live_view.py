@@ -95,7 +95,10 @@ def test_a_foxglove_client_gets_the_estimates_and_the_decimated_samples_the_esti
         if m["quality"] in ESTIMATED:
             assert m["slip_lo"] == pytest.approx(m["slip"] - 1.96 * m["slip_std"], abs=1e-12)
             assert m["slip_hi"] == pytest.approx(m["slip"] + 1.96 * m["slip_std"], abs=1e-12)
-            assert 0 < m["latency_ms"] < 1e4
+            if k == 5 and m["latency_ms"] is None:  # the whole sixth, closed when the stream ended: no closing
+                assert live["estimation"]["wheel0"]["qualities"].get("partial", 0) == 0  # sample to time from
+            else:
+                assert 0 < m["latency_ms"] < 1e4
         else:
             assert m["slip"] is None and m["slip_lo"] is None
     # the lost frame: bridged, and the cycle estimated all the same, saying so
