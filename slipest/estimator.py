@@ -445,7 +445,7 @@ class SoilSlipEstimator(CycleEstimator):
 
     def prefetch(self, omega: float | None = None, noise_smooth: float | None = None) -> None:
         """Get ready for the next cycle: build its table if its leg speed [rad/s] and smoothed noise [g] (when
-        both are known: finite, the speed > 0) fall in a new bin (about 0.1 s), and those of a noise one bin
+        both are known: finite, the speed > 0) fall in a new bin (about 40 ms a table), and those of a noise one bin
         higher and lower, then bring what the cycle step reads (the table, the weights,
         scratch: about 7 MB) into the CPU caches. Call it before a cycle closes
         (:class:`~slipest.online.SlipEstimator` does): the step then waits less on memory. Changes nothing else."""

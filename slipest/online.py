@@ -199,7 +199,8 @@ def _check_options(cls, options: dict, method: str) -> None:
 #: (a cycle up to four times faster than the last is still caught before its close) ...
 PREFETCH_PLAN = 0.25
 #: ... when this fraction of the predicted cycle is left (the window half done), it builds the table of the
-#: window's speed so far if that is a new bin (about 0.1 s; the speed may change from one cycle to the next) ...
+#: window's speed so far if that is a new bin (three tables, about 0.1 s; the speed may change from one cycle to
+#: the next) ...
 PREFETCH_BUILD = 0.25
 #: ... and when this fraction is left (about 25 ms at the models' speed), it brings the table into the CPU
 #: caches (building it now only if the speed moved to another bin since): the estimate on the closing sample

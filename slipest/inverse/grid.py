@@ -218,4 +218,5 @@ def grid_tables(model, grid: SoilGrid, nodes=SLIP_NODES) -> GridTables:
     return tables
 
 
-__all__ = ["SLIP_NODES", "slip_prior", "SoilGrid", "Table", "QUANTISE_LIMIT", "quantise", "quantise_product", "GridTables", "grid_tables"]
+__all__ = ["SLIP_NODES", "slip_prior", "SoilGrid", "Table", "QUANTISE_LIMIT", "quantise", "quantise_product",
+           "GridTables", "grid_tables"]

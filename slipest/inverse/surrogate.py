@@ -103,7 +103,8 @@ def legendre_design(u: np.ndarray, terms: np.ndarray) -> np.ndarray:
 
 
 
-def legendre_factors(terms4: np.ndarray, coef: np.ndarray, center4, halfwidth4, levels) -> tuple[np.ndarray, np.ndarray]:
+def legendre_factors(terms4: np.ndarray, coef: np.ndarray, center4, halfwidth4,
+                     levels) -> tuple[np.ndarray, np.ndarray]:
     """A tensor Legendre polynomial in (slip, kS, phiS, dphi) (terms ``(T, 4)``, coefficients ``(T, d)``,
     normalisation ``u = (x - center4) / halfwidth4``) on the tensor grid of ``levels`` = (slip nodes, kS,
     phiS, dphi levels), as two factors ``(partial, basis)``: ``partial`` ``(A, d, nk, nphiS, ndphi)``
