@@ -18,7 +18,9 @@ Writes two simulated logs (1 kHz, 0.01 g noise, the soil changing every
 4. replay end to end of a drive whose leg speed changes every 3-6 cycles
    (``tools/bench_accuracy.py``'s changing-speed draw, 0.35-1.1 rad/s,
    ``--speed-cycles`` cycles): each new (speed, noise) bin builds a table
-   (about 50 ms), which a steady log does once;
+   (about 40 ms), which a steady log does once; how many it built, and
+   the median of 12 builds timed alone, say what share of that replay
+   the builds are;
 5. peak memory of ``slipest replay`` on the 10-minute and the long log,
    each in a fresh process (``ru_maxrss``) and with ``tracemalloc`` (Python
    allocations), to show it does not grow with the log's length.
@@ -92,6 +94,31 @@ def changing_speed_scenario(cycles: int, seed: int) -> Scenario:
     run = draw_run(np.random.default_rng(seed), 4, -(-cycles // 4), changing=True)
     run["seed"] = seed
     return scenario(run, 1000.0, 0.01)
+
+
+def shipped_tables():
+    """The shared tables of the shipped model on the default grid and the estimator's slip nodes (those a replay
+    with the default model builds into)."""
+    from slipest.estimator import NODE_STRIDE
+    from slipest.inverse.grid import SLIP_NODES, SoilGrid, grid_tables
+    from slipest.inverse.surrogate import load_inverse_model
+
+    return grid_tables(load_inverse_model(), SoilGrid.default(), SLIP_NODES[::NODE_STRIDE])
+
+
+def time_builds(n: int) -> np.ndarray:
+    """Seconds of ``n`` table builds of the shipped model at leg speeds spread over 0.35-1.1 rad/s (a separate
+    set of tables: the shared ones keep what they hold)."""
+    from slipest.inverse.grid import GridTables
+
+    shared = shipped_tables()
+    tables = GridTables(shared.model, shared.grid, shared.nodes)
+    out = []
+    for omega in np.geomspace(0.35, 1.1, n):
+        t0 = time.perf_counter()
+        tables.get(float(omega), 0.002)
+        out.append(time.perf_counter() - t0)
+    return np.array(out)
 
 
 def log_or_default(log: str | None, tmp: str) -> Path:
@@ -194,8 +221,11 @@ def main(argv=None) -> int:
         res["replay_in_process"] = {"seconds": dt, "samples_per_s": n_long / dt}
         speeds = d / "log_changing_speed.csv"
         n_speeds = write_scenario(speeds, changing_speed_scenario(args.speed_cycles, 3))
+        before = shipped_tables().builds
         dt = replay_in_process(speeds, d / "out_speeds.csv")
-        res["replay_changing_speed"] = {"samples": n_speeds, "seconds": dt, "samples_per_s": n_speeds / dt}
+        res["replay_changing_speed"] = {"samples": n_speeds, "seconds": dt, "samples_per_s": n_speeds / dt,
+                                        "table_builds": shipped_tables().builds - before,
+                                        "build_ms_median": float(np.median(time_builds(12)) * 1e3)}
         child = {name: replay_child(log, d / f"out_{name}.csv", trace=False) for name, log in (("short", short), ("long", long_))}
         for name, c in child.items():
             c["samples_per_s_wall"] = res["samples"][name] / c["wall_s"]
@@ -227,6 +257,8 @@ def main(argv=None) -> int:
     c = r["replay_changing_speed"]
     print(f"replay end to end, in process, leg speed changing every 3-6 cycles ({c['samples']} samples): "
           f"{c['samples_per_s'] / 1e6:.2f} M samples/s ({c['seconds']:.2f} s; a table built per new speed)")
+    print(f"  table builds in that replay: {c['table_builds']}, {c['build_ms_median']:.1f} ms each (median of 12 "
+          f"timed alone): about {c['table_builds'] * c['build_ms_median'] / 1e3 / c['seconds']:.0%} of its time")
     for name in ("short", "long"):
         c = r["replay_process"][name]
         print(f"replay as a new process ({name}): {c['samples_per_s_wall'] / 1e6:.2f} M samples/s wall "
