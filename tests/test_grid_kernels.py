@@ -73,8 +73,8 @@ def test_a_quantised_table_holds_its_values_within_half_a_step(D, K, S, seed, sp
        st.floats(1e-3, 600.0), st.booleans())
 def test_quantise_equals_its_numpy_statement(D, K, S, seed, spread, cells_outermost):
     """The compiled quantise_into gives exactly the counts and steps of the plain numpy statement (counts of the
-    float32 step the kernels multiply by), whatever the layout it reads (the build's cells-outermost array, or
-    a columnar one)."""
+    float32 step the kernels multiply by), whatever the memory layout of the values (columnar, or a transposed
+    view of a cells-outermost array)."""
     rng = np.random.default_rng(seed)
     values = rng.normal(0.0, spread, (D, K, S))
     if cells_outermost:

@@ -123,7 +123,7 @@ def quantise(values: np.ndarray, limit: float = QUANTISE_LIMIT) -> tuple[np.ndar
     values = np.asarray(values, dtype=np.float64)
     counts = np.empty(values.shape, dtype=np.int16)
     step = np.empty(values.shape[0], dtype=np.float32)
-    quantise_into(values.transpose(2, 1, 0), float(limit), counts, step)  # read in the cells' order
+    quantise_into(values, float(limit), counts, step)
     return counts, step
 
 

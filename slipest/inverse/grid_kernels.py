@@ -70,36 +70,44 @@ def whiten_into(row, cols, whitener, fw):
     return True
 
 
+@numba.njit(cache=True, inline="always")
+def quantise_step(top, limit):
+    """The float32 step of a coordinate whose largest ``|value|`` is ``top``: ``min(top, limit) / 32767``, 1
+    for a coordinate of zeros (the rule of :func:`slipest.inverse.grid.quantise`)."""
+    t = min(top, limit)
+    return np.float32(t / 32767.0 if t > 0.0 else 1.0)
+
+
+@numba.njit(cache=True, inline="always")
+def quantise_count(v, st):
+    """The int16 count of ``v`` for the step ``st`` (the float32 step as float64): ``rint(v / st)`` clipped to
+    +-32767, so ``count * step`` is within ``step / 2`` of ``v`` (up to the clipping)."""
+    return np.int16(min(max(np.rint(v / st), -32767.0), 32767.0))
+
+
 @numba.njit(cache=True)
 def quantise_into(x, limit, counts, step):
-    """The int16 counts of :func:`slipest.inverse.grid.quantise`, read from ``x`` ``(S, K, D)`` (the cell
-    outermost, as the whitened means are computed) and written columnar: ``counts`` ``(D, K, S)`` int16 and
-    ``step`` ``(D,)`` float32 (the largest ``|x|`` of the coordinate, at most ``limit``, over 32767; 1 for a
-    coordinate of zeros); each count is ``rint(x / step)`` in float64 with the float32 step the kernels
-    multiply by (so ``count * step`` is within ``step / 2`` of ``x``), clipped to +-32767."""
-    S, K, D = x.shape
-    top = np.zeros(D)
-    for s in range(S):
-        for k in range(K):
-            for d in range(D):
-                v = abs(x[s, k, d])
-                if v > top[d]:
-                    top[d] = v
-    st = np.empty(D)
+    """The int16 counts of :func:`slipest.inverse.grid.quantise` of ``x`` ``(D, K, S)``: ``counts`` ``(D, K, S)``
+    int16 and ``step`` ``(D,)`` float32 (:func:`quantise_step` of the largest ``|x|`` of the coordinate; each
+    count :func:`quantise_count`, in float64 with the float32 step the kernels multiply by)."""
+    D, K, S = x.shape
     for d in range(D):
-        t = min(top[d], limit)
-        step[d] = np.float32(t / 32767.0 if t > 0.0 else 1.0)
-        st[d] = step[d]
-    for s in range(S):
+        top = 0.0
         for k in range(K):
-            for d in range(D):
-                q = np.rint(x[s, k, d] / st[d])
-                counts[d, k, s] = np.int16(min(max(q, -32767.0), 32767.0))
+            for s in range(S):
+                v = abs(x[d, k, s])
+                if v > top:
+                    top = v
+        step[d] = quantise_step(top, limit)
+        st = np.float64(step[d])
+        for k in range(K):
+            for s in range(S):
+                counts[d, k, s] = quantise_count(x[d, k, s], st)
 
 
 @numba.njit(cache=True)
 def quantise_product_into(partial, basis_t, cells, limit, counts, step, rows):
-    """The counts of :func:`quantise_into` of the table ``sum_a basis_t[a, k] * partial[a, d, cells[s]]``,
+    """The counts and steps of :func:`quantise_into` of the table ``sum_a basis_t[a, k] * partial[a, d, cells[s]]``,
     computed cell by cell without the table (:func:`slipest.inverse.grid.quantise_product`).
 
     ``partial``: ``(A, D, G)`` float64; ``basis_t``: ``(A, K)`` float64; ``cells``: ``(S,)`` int64 indices
@@ -125,15 +133,13 @@ def quantise_product_into(partial, basis_t, cells, limit, counts, step, rows):
                 v = abs(row[k])
                 if v > top:
                     top = v
-        t = min(top, limit)
-        step[d] = np.float32(t / 32767.0 if t > 0.0 else 1.0)
+        step[d] = quantise_step(top, limit)
         st = np.float64(step[d])
         out = counts[d]
         for s in range(S):
             row = rows[s]
             for k in range(K):
-                q = np.rint(row[k] / st)
-                out[k, s] = np.int16(min(max(q, -32767.0), 32767.0))
+                out[k, s] = quantise_count(row[k], st)
 
 
 @numba.njit(cache=True, fastmath=_NO_REASSOC)
