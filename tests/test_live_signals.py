@@ -149,8 +149,20 @@ def test_waiting_for_a_first_frame_is_reported():
 
 def test_the_first_data_after_a_wait_is_said():
     class Slow(_ListSource):
+        """Silent for 0.6 s from the run's first poll (not from its start: run_live's start-up, a full garbage
+        collection, took longer than that in a loaded test worker, and the data were there before the loop)."""
+
+        def __init__(self, n_batches):
+            super().__init__(n_batches)
+            self.polled = threading.Event()
+
+        def get(self, timeout=0.1):
+            self.polled.set()
+            return super().get(timeout)
+
         def _read(self):
             if self._k == 0:
+                self.polled.wait(30.0)
                 self._stop.wait(0.6)
             return super()._read()
 
