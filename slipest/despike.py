@@ -82,8 +82,16 @@ def _median5(a, i, n):
 def _outliers(az, k, floor, block, out):
     n = az.size
     r = np.empty(n)
+    top = 0.0
     for i in range(n):
         r[i] = az[i] - _median5(az, i, n)
+        if abs(r[i]) > top:
+            top = abs(r[i])
+    count = 0
+    for i in range(n):
+        out[i] = False
+    if not top > floor:  # no residual above the floor: no outlier whatever the local scale (most clean cycles)
+        return count
     nb = (n + block - 1) // block
     bs = np.empty(nb)
     work = np.empty(block)
@@ -92,9 +100,6 @@ def _outliers(az, k, floor, block, out):
         for j in range(m):
             work[j] = abs(r[b * block + j])
         bs[b] = np.median(work[:m])
-    count = 0
-    for i in range(n):
-        out[i] = False
     for i in range(2, n - 2):  # the two samples at each end have a one-sided median: a step there is no spike
         b = i // block
         s = bs[b]

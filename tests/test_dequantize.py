@@ -167,6 +167,32 @@ def test_push_and_push_many_agree_on_a_coarse_encoder(drive):
         assert many[c].as_dict() == one[c].as_dict()
 
 
+@pytest.mark.parametrize("coarse", [False, True])
+def test_mismatched_or_two_dimensional_arrays_are_refused_before_anything_is_taken(drive, coarse):
+    """push_many refuses arrays of unequal length or not 1-D with the segmenter's error, also once a coarse
+    encoder is being interpolated (whose hold-back used to take them), and counts no sample of a refused call;
+    push refuses a sample that is not three numbers. The stream then goes on as if the calls never came."""
+    run, fine_theta, _ = drive
+    theta = _counts(fine_theta, 150) if coarse else fine_theta
+    est = SlipEstimator(n_legs=4)
+    n = 3000
+    first = est.push_many(run.t[:n], run.az[:n], theta[:n])
+    taken = est.counters["samples"]
+    for bad in ((run.t[n:n + 100], run.az[n:n + 99], theta[n:n + 100]),
+                (run.t[n:n + 100].reshape(10, 10), run.az[n:n + 100].reshape(10, 10), theta[n:n + 100].reshape(10, 10)),
+                (run.t[None, n:n + 100], run.az[n:n + 100], theta[n:n + 100])):
+        with pytest.raises(ValueError, match="push_many\\(\\) needs equal-length 1-D arrays"):
+            est.push_many(*bad)
+    with pytest.raises(ValueError, match="slip_ref must have the shape of t"):
+        est.push_many(run.t[n:n + 100], run.az[n:n + 100], theta[n:n + 100], slip_ref=np.zeros(99))
+    with pytest.raises(TypeError):
+        est.push(run.t[n], run.az[n], [theta[n]])
+    assert est.counters["samples"] == taken
+    rows = first + est.push_many(run.t[n:], run.az[n:], theta[n:]) + est.finish()
+    _, want = _estimates(run, theta)
+    assert {r.cycle: r.as_dict() for r in rows if r.ok} == {c: r.as_dict() for c, r in want.items()}
+
+
 def test_a_fine_encoder_gives_the_same_estimates_with_and_without_the_interpolation(drive):
     run, fine_theta, _ = drive
     est, on = _estimates(run, fine_theta)

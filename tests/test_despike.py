@@ -79,3 +79,30 @@ def test_the_two_samples_at_each_end_are_not_judged():
     assert not outliers(az).any()
     az[2] += 3.0 * G
     assert np.flatnonzero(outliers(az)).tolist() == [2]
+
+
+def _plain_outliers(az, k, floor, block):
+    """The module docstring's rule in plain numpy (every residual judged against its blocks' scale)."""
+    n = az.size
+    r = np.array([az[i] - np.median(az[max(0, i - 2):i + 3]) for i in range(n)])
+    scale = np.array([np.median(np.abs(r[b:b + block])) for b in range(0, n, block)])
+    out = np.zeros(n, dtype=bool)
+    for i in range(2, n - 2):
+        b = i // block
+        s = scale[max(0, b - 1):b + 2].max()
+        out[i] = abs(r[i]) > max(k * 1.4826 * s, floor)
+    return out
+
+
+@pytest.mark.parametrize("seed", range(60))
+def test_outliers_equal_the_plain_statement_of_the_rule(seed):
+    """The compiled rule (which skips the local scales when no residual reaches the floor) flags exactly what
+    the plain statement does: noise below and above the floor, glitches on top, blocks cut short at the end."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(5, 300))
+    az = 9.81 + np.sin(np.arange(n) * rng.uniform(0.01, 0.5)) * rng.choice([0.0, 0.1, 5.0])
+    az += rng.normal(0.0, rng.choice([0.005, 0.05, 0.3, 1.5]) * FLOOR, n)
+    for _ in range(int(rng.integers(0, 4))):
+        az[int(rng.integers(0, n))] += rng.choice([-1.0, 1.0]) * np.exp(rng.uniform(np.log(0.5), np.log(20.0))) * FLOOR
+    k, block = float(rng.choice([3.0, 6.0])), int(rng.choice([8, 32]))
+    assert outliers(az, k=k, floor=FLOOR, block=block).tolist() == _plain_outliers(az, k, FLOOR, block).tolist()

@@ -164,7 +164,11 @@ def test_a_rover_file_for_other_legs_or_another_version_is_refused_naming_it(tmp
     for change, message in (({"format_version": 2}, "format_version 2 is not supported"),
                             ({"kind": "calibration"}, "not a slipest rover file"),
                             ({"base_model": {"source": "shipped", "sha256": "0" * 64}}, "another version of the shipped"),
-                            ({"extra_cov": [[1.0]]}, "malformed rover model")):
+                            ({"extra_cov": [[1.0]]}, "malformed rover model"),
+                            ({"disturbance": [1, 2, 3]}, "disturbance must be an object"),
+                            ({"n_legs": 4.7}, "n_legs 4.7 is not a number of legs"),
+                            ({"n_legs": "4"}, "n_legs '4' is not a number of legs"),
+                            ({"n_legs": 0}, "n_legs 0 is not a number of legs")):
         bad = tmp_path / "bad.json"
         bad.write_text(json.dumps({**doc, **change}))
         with pytest.raises(RoverFileError, match=message):

@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from slipest.io.device_stream import STUCK_MIN_SAMPLES, STUCK_TIME, WheelSamples, WheelStream, stuck_run_length
+from slipest.io.device_stream import WheelSamples, WheelStream
+from slipest.stuck import STUCK_MIN_SAMPLES, STUCK_TIME, stuck_run_length
 
 RATE = 1000.0
 

@@ -34,7 +34,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
 from slipest.io.can_messages import decode, encode_imu  # noqa: E402
-from slipest.io.device_stream import STUCK_MIN_SAMPLES, STUCK_TIME, stuck_run_length  # noqa: E402
+from slipest.stuck import STUCK_MIN_SAMPLES, STUCK_TIME, stuck_run_length  # noqa: E402
 from slipest.io.serial_frames import FrameDecoder, encode_imu_sample  # noqa: E402
 from slipest.model.scenario import Scenario  # noqa: E402
 from slipest.model.stream import simulate_stream  # noqa: E402

@@ -37,7 +37,7 @@ import sys
 
 from slipest.cli.command import add_logging_arguments
 from slipest.cli.estimator_args import add_estimator_arguments, model_from_args, soil_from_args
-from slipest.io.device_stream import STUCK_TIME
+from slipest.stuck import STUCK_TIME
 from slipest.live import LiveEstimation, StopConditions, run_live
 from slipest.live.loop import StopSignals
 

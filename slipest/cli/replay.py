@@ -49,7 +49,7 @@ import sys
 from slipest.cli import estimate_output
 from slipest.cli.command import add_command
 from slipest.cli.estimator_args import add_estimator_arguments, soil_from_args
-from slipest.io.device_stream import STUCK_TIME
+from slipest.stuck import STUCK_TIME
 from slipest.online import ESTIMATE_FIELDS
 
 #: Output columns, in order (a CAN log's rows have ``wheel`` first).

@@ -99,13 +99,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from slipest.stuck import STUCK_MIN_SAMPLES, STUCK_TIME, stuck_run_length
+
 __all__ = ["STUCK_MIN_SAMPLES", "STUCK_TIME", "SEQ_MODULUS", "WheelSamples", "WheelStream", "stuck_run_length"]
 
 SEQ_MODULUS = 1 << 16
-#: [s] a run of bit-identical az lasting this long is a stuck sensor (see the module docstring).
-STUCK_TIME = 0.02
-#: ...but never fewer samples than this (at low IMU rates).
-STUCK_MIN_SAMPLES = 12
 #: [s] no link reorders frames by this much: a frame further back is a restarted clock.
 _REORDER_S = 1.0
 #: [s of host time] wrapped times: a receiver is never this far behind the device, nor a frame this far ahead of
@@ -176,14 +174,6 @@ class _Rows:
             return WheelSamples.empty()
         return WheelSamples(np.array(self.t), np.array(self.az), np.array(self.theta), np.array(self.slip),
                             np.array(self.filled, bool), np.array(self.intake))
-
-
-def stuck_run_length(stuck_time: float, period: float | None) -> int:
-    """Samples of a run of identical ``az`` lasting ``stuck_time`` [s] at the sample ``period`` [s]
-    (None: unknown), never fewer than :data:`STUCK_MIN_SAMPLES`."""
-    if not period:
-        return STUCK_MIN_SAMPLES
-    return max(STUCK_MIN_SAMPLES, round(stuck_time / period))
 
 
 def _column(values, n: int):

@@ -31,7 +31,8 @@ from typing import Callable
 
 import numpy as np
 
-from slipest.io.device_stream import STUCK_TIME, WheelSamples, WheelStream
+from slipest.io.device_stream import WheelSamples, WheelStream
+from slipest.stuck import STUCK_TIME
 from slipest.latency import latency_summary
 from slipest.live.recording import Recording
 
@@ -164,7 +165,8 @@ class LiveEstimation:
     def _default_factory(self, wheel: int):
         from slipest.online import SlipEstimator
 
-        kwargs = {"n_legs": self.n_legs, "use_reference": self.use_reference, "soil": self.soil, "model": self.model}
+        kwargs = {"n_legs": self.n_legs, "use_reference": self.use_reference, "soil": self.soil, "model": self.model,
+                  "stuck_time": self.stuck_time, "stuck_samples": self.stuck_samples}
         if self.method is not None:
             kwargs["method"] = self.method
         return SlipEstimator(**kwargs)

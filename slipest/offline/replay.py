@@ -37,7 +37,7 @@ from typing import Callable
 
 import numpy as np
 
-from slipest.io.device_stream import STUCK_TIME
+from slipest.stuck import STUCK_TIME
 from slipest.io.log_csv import LogFormatError, LogReader
 from slipest.io.rosbag import BagTopics
 from slipest.online import MODEL_HINTS, SlipEstimator, fit_advice
@@ -64,7 +64,9 @@ class ReplayOptions:
     (``slip_ref``) without comparing.  ``skip_bad``: count and skip malformed CSV rows.  ``log_format``:
     ``"auto"`` or one of :data:`~slipest.offline.logs.KINDS`.  ``wheels``: CAN wheels to estimate (None:
     all).  ``stuck_time`` [s] (default 20 ms, as live) or ``stuck_samples`` (a fixed run length; 0:
-    never): see :class:`~slipest.io.device_stream.WheelStream`.  ``bag``: where the
+    never): a stuck sensor (:mod:`slipest.stuck`; a CAN log's frames as
+    :class:`~slipest.io.device_stream.WheelStream` takes them, a sample log's cycles as
+    :class:`~slipest.online.SlipEstimator` does).  ``bag``: where the
     samples are in a ROS 2 bag.  ``chunk_rows``: samples per push (memory)."""
 
     legs: int | None = None
@@ -350,7 +352,7 @@ class Replay:
     def _estimator(self, wheel) -> SlipEstimator:
         o = self.options
         return SlipEstimator(n_legs=self.legs, method=o.method, soil=o.soil or None, use_reference=o.use_reference,
-                             model=self.model)
+                             model=self.model, stuck_time=o.stuck_time, stuck_samples=o.stuck_samples)
 
     def _tally(self) -> WheelTally:
         o = self.options

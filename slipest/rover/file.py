@@ -133,10 +133,9 @@ def load_rover(path, n_legs: int | None = None, base=None) -> RoverSurrogate:
     doc, source = read_json(path, "", "rover", "slipest calibrate", RoverFileError)
     source = f"rover file {source}"
     validate_rover(doc, source)
-    try:
-        legs = int(doc["n_legs"])
-    except (TypeError, ValueError):
-        raise RoverFileError(f"{source}: n_legs {doc['n_legs']!r} is not a number of legs") from None
+    legs = doc["n_legs"]
+    if isinstance(legs, bool) or not isinstance(legs, int) or legs < 1:
+        raise RoverFileError(f"{source}: n_legs {legs!r} is not a number of legs")
     if n_legs is not None and legs != int(n_legs):
         raise RoverFileError(f"{source} was made for a {legs}-leg wheel-leg, not {n_legs} legs: calibrate this "
                              "rover's own testbed logs (slipest calibrate --legs N)")

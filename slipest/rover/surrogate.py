@@ -94,6 +94,9 @@ class RoverSurrogate(FeatureSurrogate):
         if np.linalg.eigvalsh(0.5 * (q + q.T)).min() < -1e-9 * max(1.0, abs(q).max()):
             raise ValueError(f"{self.source}: extra_cov must be positive semi-definite")
         if self.disturbance is not None:
+            if not isinstance(self.disturbance, dict):
+                raise ValueError(f"{self.source}: the disturbance must be an object of phases and accelerations, "
+                                 f"not {type(self.disturbance).__name__}")
             ph = np.asarray(self.disturbance.get("phase", ()), dtype=float)
             az = np.asarray(self.disturbance.get("az", ()), dtype=float)
             if ph.ndim != 1 or ph.shape != az.shape or ph.size < 4 or not (np.all(np.isfinite(ph))
