@@ -30,9 +30,12 @@ long count among short ones, so neither starts it; once started it stays
 on for the stream (:meth:`AngleDequantizer.reset` starts over). The first
 :data:`RUNS` counts pass as reported.
 
-Angles jumping by more than pi between consecutive samples are taken as a
-wrap (the output is then unwrapped; :class:`slipest.segmentation.CycleSegmenter`
-takes either). Samples with a non-finite angle keep it and keep their place.
+Angles jumping by more than pi (and less than 3 pi) between consecutive
+samples are taken as a wrap (the output is then unwrapped; :class:`slipest.segmentation.CycleSegmenter`
+takes either). Samples with a non-finite angle keep it and keep their place;
+so does a glitched angle, 3 pi or more from the previous valid one (a
+corrupted value), unless :data:`JUMP_CONFIRM` come in a row: a new level
+(a restart), from which the interpolation starts over.
 
 Units: t [s], theta [rad]; az and the reference slip are carried through.
 """
@@ -60,24 +63,41 @@ _N_DETECT = 8
 # before it, knots known (0/1/2), stalled, the current count's first sample's time, unwrap offset [rad], samples
 # let out interpolated
 _PT, _KT, _KV, _KT0, _KV0, _NKNOT, _STALL, _T0, _WRAP, _NINT = range(_N_DETECT, _N_DETECT + 10)
-_N_STATE = _N_DETECT + 10
+# glitched angles in a row (a jump of 3 pi or more from the previous valid angle: not a wrap, not a count)
+_JUMPS = _N_DETECT + 10
+_N_STATE = _N_DETECT + 11
+#: Glitched angles in a row that make a new level (a restart, a re-zeroed encoder): taken from the last of them.
+JUMP_CONFIRM = 5
+_JUMP = 3.0 * math.pi
 
 
 @numba.njit(cache=True)
 def _unwrapped(state, theta):
-    """``theta`` [rad] on the unwrapped scale of the previous valid angle (a jump beyond pi is a wrap)."""
+    """``theta`` [rad] on the unwrapped scale of the previous valid angle (a jump beyond pi, and short of 3 pi, is
+    a wrap: a wrapped angle never jumps further; a larger jump, a glitch or an unwrapped angle's outage, is
+    left as it is)."""
     th = theta + state[_WRAP]
     if state[_HAVE] > 0.0:
         d = th - state[_PREV]
-        while d > math.pi:
+        if math.pi < d < 3.0 * math.pi:
             state[_WRAP] -= 2.0 * math.pi
             th -= 2.0 * math.pi
-            d -= 2.0 * math.pi
-        while d < -math.pi:
+        elif -3.0 * math.pi < d < -math.pi:
             state[_WRAP] += 2.0 * math.pi
             th += 2.0 * math.pi
-            d += 2.0 * math.pi
     return th
+
+
+@numba.njit(cache=True)
+def _glitch(state, th):
+    """Whether the angle ``th`` (unwrapped) is a glitch: 3 pi or more from the previous valid angle, not yet
+    :data:`JUMP_CONFIRM` in a row (counted in the state; a sample that is not one resets the count)."""
+    if state[_HAVE] > 0.0 and not abs(th - state[_PREV]) < _JUMP:
+        state[_JUMPS] += 1.0
+        if state[_JUMPS] < JUMP_CONFIRM:
+            return True
+    state[_JUMPS] = 0.0
+    return False
 
 
 @numba.njit(cache=True)
@@ -87,6 +107,8 @@ def _observe(state, ring, t, theta):
     if not math.isfinite(theta) or not math.isfinite(t):
         return False
     th = _unwrapped(state, theta)
+    if _glitch(state, th):
+        return False
     started = False
     if state[_HAVE] > 0.0 and th == state[_PREV]:
         state[_RUN] += 1.0
@@ -141,14 +163,25 @@ def _interpolate(state, t, theta, out, start, stop):
                 released = i + 1
             continue
         th = _unwrapped(state, raw)
+        if _glitch(state, th):  # kept as reported, and out of the interpolation, as a non-finite angle is
+            out[i] = raw
+            if state[_STALL] > 0.0:
+                released = i + 1
+            continue
         out[i] = th
+        if state[_HAVE] > 0.0 and not abs(th - state[_PREV]) < _JUMP:  # a new level: let through, started over
+            state[_STALL] = 1.0
+            state[_PREV] = th
+            state[_PT] = ti
+            released = i + 1
+            continue
         if th != state[_PREV]:  # a count change: the knot between the previous valid sample and this one
             kt = 0.5 * (state[_PT] + ti)
             kv = 0.5 * (state[_PREV] + th)
             if state[_STALL] == 0.0 and kt > state[_KT]:  # the held count, between its two knots
                 slope = (kv - state[_KV]) / (kt - state[_KT])
                 for j in range(released, i):
-                    if math.isfinite(out[j]) and math.isfinite(t[j]):
+                    if math.isfinite(out[j]) and math.isfinite(t[j]) and abs(out[j] - state[_KV]) < _JUMP:
                         out[j] = state[_KV] + (t[j] - state[_KT]) * slope
                         state[_NINT] += 1.0
             # (else: a count let through, or no time between the knots: as reported)

@@ -40,7 +40,15 @@ How the stream is interpreted
   its start (the first sample was already at or past ``m_k + complete_from``,
   by default ``m_k + w0``).
 * **Missing samples and holes.** A sample with a non-finite ``t`` or
-  ``theta`` cannot be placed: it is dropped and counted. A window sample
+  ``theta`` cannot be placed: it is dropped and counted.
+* **Theta jumps.** A sample whose (unwrapped) angle lies further from the
+  last one taken than ``max_speed`` (50 rad/s, tens of times any
+  wheel-leg's) times the time between them, plus 0.5 rad, is a glitch of
+  the encoder or the link (a corrupted value, 1e3 or 3e38 rad): dropped and
+  counted (``samples_jump``), so its cycle loses one sample, not its
+  numbering. Five such samples in a row that agree with each other are a
+  new level (a restart, a re-zeroed encoder): taken from the fifth on, as
+  any jump is (a ``"gap"``, or ``"reverse"`` backwards). A window sample
   whose ``az`` is NaN, at or beyond ``full_scale`` (inf included) (default 16 g) or
   equal to one of ``clip_values`` is *unusable*: kept in the arrays, never
   to be estimated from. Over the window plus its two neighbour samples (the
@@ -112,6 +120,8 @@ _TWO_PI = 2.0 * math.pi
 _INIT, _FORWARD, _REVERSE = 0, 1, 2  # modes; _INIT (a fresh state) until the first valid sample
 _CLOSE_EPS = 1e-6  # rad; pre-check margin before the exact floor() test
 _SYNC_EPS = 1e-4  # rad; a first sample this close before a cycle's start starts that cycle (a rounded angle)
+_JUMP_SLACK = 0.5  # rad; a theta step this much beyond max_speed times the time step is a jump
+_JUMP_CONFIRM = 5  # jumped samples in a row that agree with each other: a new level, taken
 # a cycle's flags as bits, bit b standing for QUALITY_PRIORITY[b]
 _F_REVERSE, _F_TOO_LONG, _F_PARTIAL, _F_TIME, _F_GAP, _F_STOPPED, _F_NAN, _F_SATURATED, _F_SPARSE = (
     1 << b for b in range(len(QUALITY_PRIORITY)))
@@ -248,17 +258,20 @@ _STATE = np.dtype([
     ("unwrap", _b1),
     ("wlo", _f8), ("whi", _f8), ("reverse_tol", _f8), ("max_gap", _f8), ("gap_factor", _f8), ("max_dtheta", _f8),
     ("stop_dtheta", _f8), ("stop_time", _f8), ("full_scale", _f8), ("min_samples", _i8), ("max_samples", _i8),
+    ("max_speed", _f8),
     # the stream: mode, unwrapping, time order, progress (running max / min of theta), current cycle k
     ("mode", _i8), ("resume", _b1), ("th_resume", _f8), ("have_raw", _b1), ("last_raw", _f8), ("nwrap", _i8),
     ("last_t", _f8), ("has_prev", _b1), ("prev_t", _f8), ("prev_th", _f8), ("tmax", _f8), ("tmin", _f8),
     ("k", _i8), ("mk", _f8), ("t_open", _f8), ("synced_here", _b1), ("sync_ph", _f8),
+    # the last angle taken (theta jumps are judged from it) and a run of jumped samples that agree (a new level)
+    ("have_ok", _b1), ("ok_t", _f8), ("ok_th", _f8), ("cand_n", _i8), ("cand_t", _f8), ("cand_th", _f8),
     # the open cycle's window: samples stored (n) and seen (nwin), its neighbour samples, NaN seen
     ("n", _i8), ("nwin", _i8), ("overflow", _b1), ("has_pre", _b1), ("pre_t", _f8), ("pre_ph", _f8),
     ("has_post", _b1), ("post_t", _f8), ("post_ph", _f8),
     # counters
     ("samples_seen", _i8), ("samples_invalid", _i8), ("samples_reverse", _i8), ("samples_overflow", _i8),
     ("time_backwards", _i8), ("time_duplicate", _i8), ("wraps", _i8), ("reversals", _i8), ("resyncs", _i8),
-    ("cycles_skipped", _i8),
+    ("cycles_skipped", _i8), ("samples_jump", _i8),
     # the cycle just emitted (its window is buf[:, :e_n] until _advance runs again)
     ("e_k", _i8), ("e_t_open", _f8), ("e_t_end", _f8), ("e_n", _i8), ("e_nwin", _i8), ("e_bits", _i8),
     ("e_missing", _i8),
@@ -267,7 +280,7 @@ _STATE = np.dtype([
 #: What :meth:`CycleSegmenter.resync` keeps of the state: the counters, the unwrapping, the last time.
 _KEPT_ON_RESYNC = ("have_raw", "last_raw", "nwrap", "last_t", "samples_seen", "samples_invalid", "samples_reverse",
                    "samples_overflow", "time_backwards", "time_duplicate", "wraps", "reversals", "resyncs",
-                   "cycles_skipped")
+                   "cycles_skipped", "samples_jump", "have_ok", "ok_t", "ok_th")
 
 
 @numba.njit(cache=True)
@@ -335,19 +348,39 @@ def _advance(st, buf, t, az, theta, i, clip_values):
                 i += 1
                 continue
             th = raw
+            nwrap = s.nwrap
             if s.unwrap:
                 if s.have_raw:
                     d = raw - s.last_raw
                     if d < -s.wlo:
                         if d > -s.whi:
-                            s.nwrap += 1
-                            s.wraps += 1
+                            nwrap += 1
                     elif s.wlo < d < s.whi:
-                        s.nwrap -= 1
-                        s.wraps += 1
+                        nwrap -= 1
+                th = raw + nwrap * _TWO_PI
+            if s.have_ok and not abs(th - s.ok_th) <= s.max_speed * max(ti - s.ok_t, 0.0) + _JUMP_SLACK:
+                # further from the last angle taken than the leg can turn: a glitch, unless it starts a run of
+                # _JUMP_CONFIRM that agree (a restart, a re-zeroed encoder: a new level, taken from then on)
+                if s.cand_n > 0 and abs(th - s.cand_th) <= s.max_speed * max(ti - s.cand_t, 0.0) + _JUMP_SLACK:
+                    s.cand_n += 1
+                else:
+                    s.cand_n = 1
+                s.cand_t = ti
+                s.cand_th = th
+                if s.cand_n < _JUMP_CONFIRM:
+                    s.samples_jump += 1
+                    i += 1
+                    continue
+            s.cand_n = 0
+            s.have_ok = True
+            s.ok_t = ti
+            s.ok_th = th
+            if s.unwrap:
+                if nwrap != s.nwrap:
+                    s.wraps += 1
+                s.nwrap = nwrap
                 s.have_raw = True
                 s.last_raw = raw
-                th = raw + s.nwrap * _TWO_PI
             if ti < s.last_t:
                 s.time_backwards += 1
             elif ti == s.last_t:
@@ -451,6 +484,8 @@ def _finish(st, buf, clip_values):
     s.resume = False
     s.has_prev = False
     s.have_raw = False
+    s.have_ok = False
+    s.cand_n = 0
     s.nwrap = 0
     s.last_t = -math.inf
     _open_cycle(s)
@@ -555,6 +590,7 @@ class CycleSegmenter:
       min_samples: fewer window samples than this flags ``"sparse"``.
       max_samples: most samples a window may hold (memory bound).
       initial_capacity: first size of the window buffers.
+      max_speed: [rad/s] see "Theta jumps" in the module doc.
     """
 
     def __init__(
@@ -576,6 +612,7 @@ class CycleSegmenter:
         min_samples: int = 8,
         max_samples: int = 65536,
         initial_capacity: int = 4096,
+        max_speed: float = 50.0,
     ):
         if not isinstance(n_legs, (int, np.integer)) or n_legs < 1:
             raise ValueError(f"n_legs must be an int >= 1, got {n_legs!r}")
@@ -614,6 +651,9 @@ class CycleSegmenter:
             raise ValueError(f"min_samples must be >= 0, got {min_samples!r}")
         if max_samples < 1 or initial_capacity < 1:
             raise ValueError("max_samples and initial_capacity must be >= 1")
+        if not max_speed > 0:
+            raise ValueError(f"max_speed must be > 0 rad/s, got {max_speed!r}")
+        self.max_speed = float(max_speed)
         self.max_gap = None if max_gap is None else float(max_gap)
         self.gap_factor = float(gap_factor)
         self.max_dtheta = float(max_dtheta)
@@ -635,7 +675,7 @@ class CycleSegmenter:
             reverse_tol=self.reverse_tol, max_gap=math.nan if max_gap is None else self.max_gap,
             gap_factor=self.gap_factor, max_dtheta=self.max_dtheta, stop_dtheta=self.stop_dtheta,
             stop_time=self.stop_time, full_scale=self.full_scale, min_samples=self.min_samples,
-            max_samples=self.max_samples, last_t=-math.inf,
+            max_samples=self.max_samples, last_t=-math.inf, max_speed=self.max_speed,
         ).items():
             self._fresh[name] = value
         self._buf = np.empty((3, self.initial_capacity))
@@ -693,12 +733,12 @@ class CycleSegmenter:
     def counters(self) -> dict:
         """Counts so far: ``samples_seen``; ``samples_dropped`` = invalid
         (non-finite t or theta) + reverse (while driving backwards) + overflow
-        (past ``max_samples`` in a window); ``time_backwards``,
+        (past ``max_samples`` in a window) + jump (theta jumps); ``time_backwards``,
         ``time_duplicate``; ``wraps``; ``reversals``; ``resyncs`` (stream start
         included); ``cycles_skipped`` (cycles jumped over without a sample);
         ``cycles_emitted`` and ``cycles_<quality>`` for every quality."""
         s = self._st[0]
-        dropped = ("samples_invalid", "samples_reverse", "samples_overflow")
+        dropped = ("samples_invalid", "samples_reverse", "samples_overflow", "samples_jump")
         c = {"samples_seen": int(s["samples_seen"]), "samples_dropped": sum(int(s[k]) for k in dropped)}
         for k in dropped + ("time_backwards", "time_duplicate", "wraps", "reversals", "resyncs", "cycles_skipped"):
             c[k] = int(s[k])

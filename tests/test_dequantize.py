@@ -258,3 +258,41 @@ def test_a_whole_log_angle_is_unwrapped_around_its_lost_samples_and_then_interpo
     q = 2 * math.pi / 150
     err = dequantize_log(t, coarse) - (lost - (lost[0] - out[0]))
     assert np.nanmax(np.abs(err)) < 0.1 * q
+
+
+@pytest.mark.parametrize("spike", [3.4e38, 1e3, -50.0])
+def test_a_glitched_angle_neither_hangs_nor_shifts_the_unwrapping(drive, spike):
+    """One corrupted angle among a coarse encoder's counts: taken as no wrap (a wrapped angle never jumps by
+    3 pi or more), so the unwrapping of the angles after it is untouched; the estimator drops the sample
+    (a theta jump) and numbers every cycle as without it. (A float32's largest value looped forever
+    unwrapping it by 2 pi at a time.)"""
+    run, fine_theta, _ = drive
+    coarse = _counts(fine_theta, 150)
+    bad = coarse.copy()
+    bad[9100] = spike
+    clean_est, clean = _estimates(run, coarse)
+    est, got = _estimates(run, bad)
+    assert got.keys() == clean.keys()
+    assert est.counters["segmenter_samples_jump"] >= 1
+    d = AngleDequantizer()
+    out = _all([d.feed(run.t, run.az, bad), d.flush()])
+    assert out[2].size == run.t.size
+    around = np.r_[8000:9100, 9101:10200]  # the interpolated angle around the glitch, the glitch left out
+    assert np.all(np.abs(np.diff(out[2][around])) < 0.1)
+
+
+def test_a_new_angle_level_starts_the_interpolation_over(drive):
+    """A coarse encoder re-zeroed 30 rad on (a restart): five samples kept as reported, then the new level is
+    taken and its counts interpolated again, as smoothly as before the jump."""
+    run, fine_theta, _ = drive
+    j = 9100
+    moved = _counts(fine_theta, 150)
+    moved[j:] += 30.0
+    d = AngleDequantizer()
+    out = _all([d.feed(run.t, run.az, moved), d.flush()])[2]
+    truth = fine_theta + np.where(np.arange(fine_theta.size) >= j, 30.0, 0.0)
+    before, after = np.r_[3000:j - 500], np.r_[j + 2000:fine_theta.size - 2000]
+    err_before = np.abs(out[before] - truth[before]).max()
+    err_after = np.abs(out[after] - truth[after]).max()
+    step = 2 * math.pi / 150
+    assert err_before < 0.25 * step and err_after < 0.25 * step  # interpolated (a staircase errs by half a count)

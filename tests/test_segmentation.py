@@ -865,3 +865,42 @@ def test_window_checks_match_the_rules(n, seed, pre, post, given_gap):
     names = {_F_TIME: "time", _F_GAP: "gap", _F_STOPPED: "stopped", _F_NAN: "nan", _F_SATURATED: "saturated"}
     assert {name for bit, name in names.items() if bits & bit} == want
     assert missing == want_missing
+
+
+@pytest.mark.parametrize("spike", [1e3, -1e3, 1e6, 3.4e38, 1e300])
+def test_a_glitched_theta_sample_is_dropped_and_counted_not_followed(spike):
+    """One corrupted angle (a float32's largest value, a huge or a negative one) is a jump no leg makes: the
+    sample is dropped and counted, every cycle keeps its number and its quality, one window loses the sample;
+    push and push_many agree. (It used to open cycle 637 or 636620, then flag the next sample reverse and
+    number cycle 10 twice; 3.4e38 hung the replay.)"""
+    t, az, th = make_stream(T=20.0)
+    clean = run_many(CycleSegmenter(NL), t, az, th)
+    bad = th.copy()
+    j = int(np.searchsorted(t, 9.1))
+    bad[j] = spike
+    for run in (run_many, run_push):
+        seg = CycleSegmenter(NL)
+        got = run(seg, t, az, bad)
+        assert [c.k for c in got] == [c.k for c in clean]
+        assert [c.quality for c in got] == [c.quality for c in clean]
+        assert sum(c.n_samples for c in clean) - sum(c.n_samples for c in got) in (0, 1)
+        assert seg.counters["samples_jump"] == 1 and seg.counters["reversals"] == 0
+
+
+def test_a_new_angle_level_is_taken_after_five_samples_that_agree():
+    """An encoder re-zeroed 30 rad back (a restart): five samples dropped, then the new level is taken as any
+    backward jump is (reverse, resynchronised), and cycles are cut on it; 30 rad forward: a gap."""
+    t, az, th = make_stream(T=20.0)
+    j = int(np.searchsorted(t, 9.1))
+    for shift, flag in ((-30.0, "reverse"), (30.0, "gap")):
+        moved = th.copy()
+        moved[j:] += shift
+        seg = CycleSegmenter(NL)
+        got = run_many(seg, t, az, moved)
+        assert seg.counters["samples_jump"] == 4
+        assert flag in [c.quality for c in got]
+        after = [c for c in got if c.t_start > t[j] + 3.0]
+        assert after and all(c.quality == "ok" for c in after)
+        for c in after:  # numbered on the new level: each opened at an angle of its own cycle
+            opened = float(np.interp(c.t_start, t, moved))
+            assert c.k * P - H - 1e-6 <= opened < c.k * P + H
