@@ -134,18 +134,19 @@ def _window_speed(t, theta_phase, half):
 GRAVITY_RANGE = (0.8, 1.2)
 
 
-def _units_hint(mean_g: float) -> str:
-    """What a cycle's rigid-half mean ``az`` [g] outside :data:`GRAVITY_RANGE` most likely means."""
+def units_hint(mean_g: float, level: str = "rigid-phase mean") -> str:
+    """What a cycle's rigid-half mean ``az`` [g] (or the ``level`` said, e.g. a log's median) outside
+    :data:`GRAVITY_RANGE` most likely means."""
     lo, hi = GRAVITY_RANGE
     if lo <= mean_g * G <= hi:
-        return (f"az looks like it is in g (a rigid-phase mean of {mean_g * G:.2f} where gravity reads 9.81): "
+        return (f"az looks like it is in g (a {level} of {mean_g * G:.2f} where gravity reads 9.81): "
                 "slipest wants m/s^2")
     if -hi <= mean_g <= -lo or -hi <= mean_g * G <= -lo:
-        return f"az points down (a rigid-phase mean of {mean_g * G:.2f} m/s^2): the IMU axis is reversed"
+        return f"az points down (a {level} of {mean_g * G:.2f} m/s^2): the IMU axis is reversed"
     if abs(mean_g) < 0.2:
-        return (f"az has no gravity in it (a rigid-phase mean of {mean_g * G:.2f} m/s^2): slipest wants the specific "
+        return (f"az has no gravity in it (a {level} of {mean_g * G:.2f} m/s^2): slipest wants the specific "
                 "force the IMU reports, +9.81 m/s^2 at rest")
-    return (f"az's rigid-phase mean is {mean_g * G:.2f} m/s^2, not gravity's 9.81: check the IMU's axis, units and "
+    return (f"az's {level} is {mean_g * G:.2f} m/s^2, not gravity's 9.81: check the IMU's axis, units and "
             "mounting")
 
 
@@ -429,6 +430,8 @@ class SlipEstimator:
     ):
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, not {method!r}")
+        if isinstance(n_legs, bool) or not isinstance(n_legs, (int, np.integer)) or n_legs < 1:
+            raise ValueError(f"n_legs must be a whole number of legs >= 1, got {n_legs!r}")
         self.n_legs = int(n_legs)
         self.method = method
         self.soil = _soil_from(soil)
@@ -656,7 +659,7 @@ class SlipEstimator:
             az = self._correct(ph, az)
         gravity = _rigid_mean(ph, az, half) / G
         if math.isfinite(gravity) and not GRAVITY_RANGE[0] <= gravity <= GRAVITY_RANGE[1]:
-            self._hints.setdefault("units", _units_hint(gravity))
+            self._hints.setdefault("units", units_hint(gravity))
             return self._flagged(cyc, "units", ref)
         if self._timing is not None:  # looked at after the estimate is out (_run_timing_job)
             self._timing_job = (cyc.k, tt, az, ph, omega, self.noise_estimate * G)

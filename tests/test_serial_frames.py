@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 
 from slipest.io import serial_frames as sf
 
-F32 = st.floats(width=32, allow_nan=False, allow_infinity=False)
+F32 = st.floats(-sf.FIELD_LIMIT, sf.FIELD_LIMIT, width=32)  # the values a frame may carry
 
 
 def f32(x: float) -> float:
@@ -253,14 +253,20 @@ def test_intact_but_invalid_frames_are_counted_not_delivered():
 
 
 def test_non_finite_values_are_not_delivered_but_advance_the_counter():
+    """NaN, inf and values beyond FIELD_LIMIT (a float32's largest, an angle of 1e30 rad: a device's corrupted
+    value) are not delivered; the encoder refuses them."""
     data = (sf.encode_imu_sample(0, 0, 0, 1.0, 1.0)
             + raw_frame("<BBHQff", 0x01, 0, 1, 1, float("nan"), 1.0)
             + raw_frame("<BBHQf", 0x02, 0, 7, 1, float("-inf"))
-            + sf.encode_imu_sample(0, 2, 2, 1.0, 1.0))
+            + raw_frame("<BBHQff", 0x01, 0, 2, 2, 9.81, 1e30)
+            + raw_frame("<BBHQff", 0x01, 0, 3, 3, -3.4028234663852886e38, 1.0)
+            + sf.encode_imu_sample(0, 4, 4, 1.0, sf.FIELD_LIMIT))
     out, c = feed_in_chunks(data, [5, 40])
-    assert [f.seq for f in out] == [0, 2]
-    assert c["nonfinite"] == 2 and c["seq_gaps"] == 0 and c["frames_ok"] == 2
+    assert [f.seq for f in out] == [0, 4]
+    assert c["nonfinite"] == 4 and c["seq_gaps"] == 0 and c["frames_ok"] == 2
     assert_chunking_does_not_matter(data, out, c)
+    with pytest.raises(ValueError, match="theta must be a finite float32 value within"):
+        sf.encode_imu_sample(0, 5, 5, 9.81, 2 * sf.FIELD_LIMIT)
 
 
 def test_crc_error_is_counted():

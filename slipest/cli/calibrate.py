@@ -31,7 +31,8 @@ import argparse
 import shlex
 import sys
 
-from slipest.cli.command import add_command
+from slipest.cli.command import add_command, leg_count
+from slipest.cli.output_paths import output_problem
 
 
 def add_parser(sub) -> None:
@@ -40,7 +41,7 @@ def add_parser(sub) -> None:
     p.add_argument("logs", nargs="+", metavar="LOG.csv", help="testbed logs (slipest CSV with a 'slip' column), "
                    "each on its own soil")
     p.add_argument("-o", "--output", required=True, metavar="ROVER.json", help="the rover file to write")
-    p.add_argument("--legs", type=int, default=None, help="legs of the wheel-leg (default: the logs' nL, else 4)")
+    p.add_argument("--legs", type=leg_count, default=None, help="legs of the wheel-leg (default: the logs' nL, else 4)")
     p.add_argument("--MH", type=float, default=None, help="hub mass [kg] (default: the logs' metadata, else 1.0)")
     p.add_argument("--mF", type=float, default=None, help="foot mass [kg] (default: the logs' metadata, else 0.2)")
     p.add_argument("--lS", type=float, default=None, help="spoke length [m] (default: the logs' metadata, else 0.1763)")
@@ -94,6 +95,9 @@ def run(args: argparse.Namespace) -> int:
     from slipest.rover.calibrate import CalibrateOptions
     from slipest.rover.report import report_lines
 
+    problem = output_problem(args.output, args.logs)
+    if problem:  # before the calibration's minutes, not after
+        _fail(problem)
     effects = tuple(e.strip() for e in args.effects.split(",") if e.strip()) if args.effects else None
     if args.batch is not None and args.batch < 50:
         _fail(f"--batch {args.batch}: at least 50 simulated cycles are needed to fit a discrepancy")

@@ -24,6 +24,17 @@ def add_command(sub, name: str, summary: str, doc: str) -> argparse.ArgumentPars
                           formatter_class=argparse.RawDescriptionHelpFormatter)
 
 
+def leg_count(text: str) -> int:
+    """``--legs``: a whole number of legs >= 1 (argparse type)."""
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of legs (a whole number >= 1)")
+    return n
+
+
 #: Log levels ``--log-level`` takes.
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
 #: How a message looks on stderr: time to the millisecond, level, logger, text.

@@ -27,7 +27,8 @@ import argparse
 import json
 import sys
 
-from slipest.cli.command import add_command
+from slipest.cli.command import add_command, leg_count
+from slipest.cli.output_paths import output_problem
 
 
 def add_parser(sub) -> None:
@@ -42,7 +43,7 @@ def add_parser(sub) -> None:
                    help="fit every effect even when the nominal model already explains the data")
     p.add_argument("--quick", action="store_true", help="half the optimiser budget (faster, less reliable)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the optimiser (default 0)")
-    p.add_argument("--legs", type=int, default=None, help="number of legs (default: log metadata nL, else 4)")
+    p.add_argument("--legs", type=leg_count, default=None, help="number of legs (default: log metadata nL, else 4)")
     p.add_argument("--MH", type=float, default=None, help="hub mass [kg] (default: metadata, else 1.0)")
     p.add_argument("--mF", type=float, default=None, help="foot mass [kg] (default: metadata, else 0.2)")
     p.add_argument("--lS", type=float, default=None, help="spoke length [m] (default: metadata, else 0.1763)")
@@ -93,6 +94,10 @@ def _progress_bar(args):
 def run(args: argparse.Namespace) -> int:
     from slipest.extras import MissingExtra
 
+    problem = (output_problem(args.json, args.logs, "--json")
+               or output_problem(None if args.output == "-" else args.output, args.logs))
+    if problem:  # before the diagnosis's minutes, not after
+        _fail(problem)
     options = options_from_args(args)
     try:
         options.checked_effects()

@@ -35,7 +35,7 @@ import json
 import logging
 import sys
 
-from slipest.cli.command import add_logging_arguments
+from slipest.cli.command import add_logging_arguments, leg_count
 from slipest.cli.estimator_args import add_estimator_arguments, model_from_args, soil_from_args
 from slipest.stuck import STUCK_TIME
 from slipest.live import LiveEstimation, StopConditions, run_live
@@ -54,7 +54,7 @@ def add_live_arguments(p: argparse.ArgumentParser, link: str, *, frames: bool = 
     p.add_argument("--wait-open", type=float, default=5.0, metavar="S",
                    help=f"keep trying to open {link} for S seconds at start (default 5)")
     e = p.add_argument_group("estimation")
-    e.add_argument("--legs", type=int, default=4, help="legs of each wheel-leg (default 4)")
+    e.add_argument("--legs", type=leg_count, default=4, help="legs of each wheel-leg (default 4)")
     add_estimator_arguments(e)
     e.add_argument("--use-reference", action="store_true",
                    help="learn the soil from the reference slip frames the device sends (testbeds)")

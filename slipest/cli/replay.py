@@ -47,10 +47,11 @@ import os
 import sys
 
 from slipest.cli import estimate_output
-from slipest.cli.command import add_command
+from slipest.cli.command import add_command, leg_count
 from slipest.cli.estimator_args import add_estimator_arguments, soil_from_args
-from slipest.stuck import STUCK_TIME
+from slipest.cli.output_paths import output_problem
 from slipest.online import ESTIMATE_FIELDS
+from slipest.stuck import STUCK_TIME
 
 #: Output columns, in order (a CAN log's rows have ``wheel`` first).
 COLUMNS = ESTIMATE_FIELDS
@@ -67,7 +68,7 @@ def add_parser(sub) -> None:
     p.add_argument("--format", choices=("csv", "jsonl"), default="csv", help="output format (default csv)")
     p.add_argument("--log-format", choices=("auto",) + KINDS, default="auto",
                    help="what the log is (default: from its name; a .csv by its header)")
-    p.add_argument("--legs", type=int, default=None, help="legs of the wheel-leg (default: the log's nL, else 4)")
+    p.add_argument("--legs", type=leg_count, default=None, help="legs of the wheel-leg (default: the log's nL, else 4)")
     add_estimator_arguments(p)
     p.add_argument("--truth", action="store_true",
                    help="summarise the errors against the log's reference slip (RMSE, bias, 95%% coverage)")
@@ -146,6 +147,9 @@ def run(args: argparse.Namespace) -> int:
     from slipest.io.rosbag import is_bag
     from slipest.offline.logs import expand_logs
 
+    problem = output_problem(args.output, args.logs) or output_problem(args.plot, args.logs, "--plot")
+    if problem:
+        return _fail(problem)
     if args.logs == ["-"]:
         return _replay_one(args, sys.stdin.buffer, "-")
     (first, *more) = args.logs

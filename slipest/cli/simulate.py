@@ -13,7 +13,8 @@ import os
 import sys
 import tomllib
 
-from slipest.cli.command import add_command
+from slipest.cli.command import add_command, leg_count
+from slipest.cli.output_paths import output_problem
 from slipest.model.params import StickSlipParams
 from slipest.model.scenario import Scenario
 
@@ -21,8 +22,24 @@ from slipest.model.scenario import Scenario
 def add_parser(sub) -> None:
     p = add_command(sub, "simulate", "write a simulated log (t, az, theta, slip) from the stick-slip model", __doc__)
     add_scenario_arguments(p)
-    p.add_argument("-o", "--output", default="-", help="output CSV file ('-' or omitted: stdout)")
+    p.add_argument("-o", "--output", default="-", help="output CSV file ('-' or omitted: stdout); a simulated log "
+                   "there is replaced, any other file only with --overwrite")
+    p.add_argument("--overwrite", action="store_true", help="replace -o whatever it holds")
     p.set_defaults(func=run)
+
+
+#: The ``source`` metadata of a simulated log: what ``-o`` may replace without ``--overwrite``.
+SOURCE = "slipest simulate"
+
+
+def _simulated(path: str) -> bool:
+    """Whether the file ``path`` is a log ``slipest simulate`` wrote (its ``# source=`` line says so)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(4096)
+    except OSError:
+        return False
+    return f"# source={SOURCE}".encode() in head.splitlines()
 
 
 def add_scenario_arguments(
@@ -38,7 +55,7 @@ def add_scenario_arguments(
     g.add_argument("--phiS", type=float, default=0.52, help="static friction angle [rad] (default 0.52)")
     g.add_argument("--phiD", type=float, default=0.35, help="dynamic friction angle [rad] (default 0.35)")
     g.add_argument("--kappa", type=float, default=0.3, help="lateral leg stiffness ratio (default 0.3; 0 = literal thesis)")
-    g.add_argument("--legs", type=int, default=4, help="number of legs of the wheel-leg (default 4)")
+    g.add_argument("--legs", type=leg_count, default=4, help="number of legs of the wheel-leg (default 4)")
     g.add_argument("--omega", type=float, default=None,
                    help="leg speed [rad/s] (default 0.63; a scenario file sets it per segment)")
     g.add_argument("--cycles", type=int, default=10, help="number of leg cycles (default 10)")
@@ -109,8 +126,19 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise SystemExit(f"slipest simulate: {exc}") from None
     target = sys.stdout if args.output == "-" else args.output
-    # a simulated log can be made again: overwriting it is what a user expects
-    with LogWriter(target, ("t", "az", "theta", "slip"), metadata=scenario.metadata(), overwrite=True) as writer:
+    problem = output_problem(None if target is sys.stdout else target)
+    if problem:
+        raise SystemExit(f"slipest simulate: {problem}")
+    # a simulated log can be made again: replacing one is what a user expects; a recorded log is not replaced
+    if target is not sys.stdout and os.path.exists(target) and not (args.overwrite or _simulated(target)):
+        raise SystemExit(f"slipest simulate: {target} exists and is not a simulated log: use --overwrite to "
+                         "replace it")
+    try:
+        writer = LogWriter(target, ("t", "az", "theta", "slip"), metadata={**scenario.metadata(), "source": SOURCE},
+                           overwrite=True)
+    except OSError as exc:
+        raise SystemExit(f"slipest simulate: cannot write {args.output}: {exc.strerror or exc}") from None
+    with writer:
         try:
             for chunk in iter_stream(scenario):
                 writer.write(chunk.t, chunk.az, chunk.theta, chunk.slip)

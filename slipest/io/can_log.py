@@ -69,7 +69,7 @@ class CanLogFile:
             raise FileNotFoundError(2, "no such file", self.path)
         self.batch_frames = max(1, int(batch_frames))
         self.decoder = CanDecoder()
-        self.c = {"frames": 0, "references_invalid": 0}
+        self.c = {"frames": 0, "references_invalid": 0, "bytes_missing": 0}
         self.first_timestamp: float | None = None
 
     def describe(self) -> str:
@@ -84,8 +84,11 @@ class CanLogFile:
     def _messages(self) -> Iterator[can.Message]:
         try:
             reader = can.LogReader(self.path)
-        except (ValueError, OSError, ImportError) as exc:
-            raise LogFormatError(f"python-can cannot open it: {exc}", self.path) from None
+        except Exception as exc:  # python-can's readers raise what they raise (BLFParseError, struct.error, ...)
+            raise LogFormatError(f"python-can cannot open it ({type(exc).__name__}: {exc})", self.path) from None
+        stated = getattr(reader, "file_size", 0)  # a BLF header's size of the whole file
+        if not self.path.endswith(".gz") and stated and stated > os.path.getsize(self.path):
+            self.c["bytes_missing"] = stated - os.path.getsize(self.path)
         with reader:
             it = iter(reader)
             while True:

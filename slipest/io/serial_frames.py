@@ -60,8 +60,11 @@ classified, in this order:
 3. CRC mismatch -> ``crc_errors``;
 4. the type byte does not belong to that length, or ``wheel`` >= 6 ->
    ``malformed``;
-5. a float field is NaN or infinite -> ``nonfinite`` (the frame was received
-   intact, so it still advances the sequence counter, but it is not delivered);
+5. a float field is NaN, infinite or beyond +-:data:`FIELD_LIMIT` (1e7: no
+   acceleration, angle or slip reaches it, and a float32 there holds no
+   angle to within a radian; a device's corrupted value) -> ``nonfinite``
+   (the frame was received intact, so it still advances the sequence
+   counter, but it is not delivered: the receiver counts it lost);
 6. otherwise the frame is delivered (``frames_ok``).
 
 (CRC-16 detects every burst of up to 16 bits and every odd number of bit
@@ -88,6 +91,7 @@ __all__ = [
     "N_WHEELS",
     "SEQ_MODULUS",
     "MAX_SEGMENT_LEN",
+    "FIELD_LIMIT",
     "ImuSample",
     "SlipReference",
     "Frame",
@@ -149,6 +153,10 @@ class SlipReference(NamedTuple):
 
 
 Frame = Union[ImuSample, SlipReference]
+
+
+#: Largest magnitude of a frame's float field delivered (m/s^2, rad, -): beyond it the value is corrupted.
+FIELD_LIMIT = 1e7
 
 
 class _Spec(NamedTuple):
@@ -214,11 +222,11 @@ def _why_invalid(spec: _Spec, wheel, seq, t_us, values) -> str:
     for name, value in zip(spec.values, values):
         try:
             _F32.pack(value)
-            finite = _isfinite(value)
+            finite = _isfinite(value) and -FIELD_LIMIT <= value <= FIELD_LIMIT
         except (struct.error, OverflowError, TypeError):
             finite = False
         if not finite:
-            return f"{name} must be a finite float32 value, got {value!r}"
+            return f"{name} must be a finite float32 value within +-{FIELD_LIMIT:g}, got {value!r}"
     return f"cannot pack the fields {(wheel, seq, t_us, *values)!r}"  # pragma: no cover
 
 
@@ -228,7 +236,7 @@ def _encode(spec: _Spec, wheel, seq, t_us, *values) -> bytes:
         if 0 <= wheel < N_WHEELS:
             payload = spec.payload.pack(spec.kind, wheel, seq % SEQ_MODULUS, t_us, *values)
             for value in values:
-                if not _isfinite(value):
+                if not (_isfinite(value) and -FIELD_LIMIT <= value <= FIELD_LIMIT):
                     break
             else:
                 return encode_frame(payload)
@@ -296,7 +304,7 @@ class FrameDecoder:
     Counters (see :meth:`counters`): ``frames_ok`` delivered frames;
     ``crc_errors``; ``malformed`` (wrong length, bad COBS, unknown type, wheel
     out of range, over-long segment); ``nonfinite`` intact frames carrying a
-    NaN/inf, not delivered; ``seq_gaps`` frames missed according to the
+    NaN/inf or a value beyond :data:`FIELD_LIMIT`, not delivered; ``seq_gaps`` frames missed according to the
     sequence counters (also ``seq_gaps_by_wheel``); ``seq_backwards``
     duplicates, reorderings or device restarts; ``bytes_in`` bytes fed;
     ``bytes_discarded`` bytes of rejected (CRC/malformed) segments;
@@ -399,7 +407,7 @@ class FrameDecoder:
                     gaps += gap
                     by_wheel[wheel] += gap
             for value in fields[n_int:]:
-                if not _isfinite(value):
+                if not (_isfinite(value) and -FIELD_LIMIT <= value <= FIELD_LIMIT):
                     nonfinite += 1
                     break
             else:

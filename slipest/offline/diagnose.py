@@ -94,6 +94,20 @@ def _read(path):
         raise OSError(exc.errno, f"cannot read {path}: {exc.strerror or exc}") from None
 
 
+def _check_units(path, az) -> None:
+    """ValueError naming the likely mistake when the log's median ``az`` is not gravity (``az`` in g, gravity
+    removed, the axis reversed: :func:`slipest.online.units_hint`); over whole cycles the hub's own
+    acceleration averages out."""
+    from slipest.online import GRAVITY_RANGE, units_hint
+    from slipest.units import G
+
+    finite = az[np.isfinite(az)]
+    if finite.size:
+        level = float(np.median(finite)) / G
+        if not GRAVITY_RANGE[0] <= level <= GRAVITY_RANGE[1]:
+            raise ValueError(f"{path}: {units_hint(level, 'median')}")
+
+
 def diagnose_logs(paths, options: DiagnoseOptions = DiagnoseOptions(), progress=None):
     """Diagnose the logs together; returns the :class:`~slipest.diagnosis.run.Diagnosis`.
     ``progress(done, total, label)`` as :func:`~slipest.diagnosis.run.diagnose` calls it."""
@@ -112,6 +126,7 @@ def diagnose_logs(paths, options: DiagnoseOptions = DiagnoseOptions(), progress=
     for k, (path, log) in enumerate(zip(paths, logs)):
         if log.slip is None:
             raise LogFormatError("no 'slip' column (the diagnosis needs the imposed slip)", path)
+        _check_units(path, log.az)
         try:
             sets.append(cut_cycles(log.t, log.az, log.theta, log.slip, geometry.nL, grid=grid, log_index=k))
         except ValueError as exc:

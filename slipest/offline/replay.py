@@ -226,6 +226,10 @@ class ReplayResult:
             lines.append(f"replay: {prefix}{advice}")
         if w.cycles and not w.estimated:
             lines.append(f"replay: {prefix}no leg cycle was estimated (the flagged reasons above say why)")
+        elif not w.cycles:
+            n = c.get("samples", 0)
+            lines.append(f"replay: {prefix}no leg cycle: " + ("the log holds no samples" if not n else
+                         f"its {n} samples never completed a leg cycle (check that theta advances, in rad)"))
         return lines
 
     def summary_lines(self) -> list[str]:
@@ -238,6 +242,9 @@ class ReplayResult:
             lines.append(f"replay: {s['frames']} CAN frames read from {self.log}: {s['ok']} ours, "
                          f"{s['unknown_id']} other IDs, {s['bad_frame']} bad, {s['not_data']} error/remote frames"
                          + (f", {s['references_invalid']} invalid references" if s["references_invalid"] else ""))
+            if s.get("bytes_missing"):
+                lines.append(f"replay: {self.log} is cut short: its header says {s['bytes_missing']} bytes more than "
+                             "the file has (a copy or a recording that stopped early); the frames in them are lost")
             if not self.wheels:
                 lines.append("replay: no ImuSample frame of a wheel to estimate")
             for wheel, w in sorted(self.wheels.items()):

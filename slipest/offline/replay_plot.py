@@ -95,10 +95,10 @@ def replay_figure(series: dict, *, title: str = ""):
 
 
 def plot_replay(path, series: dict, *, title: str = "") -> str:
-    """Write :func:`replay_figure` as the PNG ``path``; returns ``path``."""
+    """Write :func:`replay_figure` as the PNG ``path`` (exactly there, whatever its extension); returns ``path``."""
     fig = replay_figure(series, title=title)
     try:
-        fig.savefig(path, dpi=110)
+        fig.savefig(path, dpi=110, format="png")
     finally:
         plt.close(fig)
     return str(path)
