@@ -19,7 +19,8 @@ from tools.check_double_signal import trial
 
 
 @pytest.mark.parametrize("sig,delay", [(signal.SIGINT, 0.0), (signal.SIGINT, 0.03), (signal.SIGTERM, 0.01),
-                                       (signal.SIGTERM, 0.05)])
+                                       (signal.SIGTERM, 0.05)]
+                         + ([(signal.SIGHUP, 0.02)] if hasattr(signal, "SIGHUP") else []))
 def test_a_second_signal_while_stopping_loses_nothing(sig, delay, tmp_path):
     """`slipest serial --record --report` on a 2-wheel firmware-sim pty, two real signals `delay` s apart: exit
     status 0, the report written, every wheel's record complete (tools/check_double_signal.py: 20 trials each)."""
@@ -38,6 +39,24 @@ def test_stop_signals_count_the_later_ones_and_restore_the_handlers():
         time.sleep(0.05)  # the handlers run in this (the main) thread between bytecodes
         assert signals.stop == "SIGTERM" and signals.ignored == 2
     assert signal.getsignal(signal.SIGTERM) is before
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGHUP"), reason="no SIGHUP on this platform")
+def test_a_hang_up_stops_a_run_unless_it_is_ignored_as_under_nohup():
+    """SIGHUP (the terminal or ssh session went away) stops a run as SIGTERM does; a process started under nohup
+    (SIGHUP ignored) keeps ignoring it."""
+    before = signal.signal(signal.SIGHUP, signal.SIG_DFL)
+    try:
+        with StopSignals(status=False) as signals:
+            os.kill(os.getpid(), signal.SIGHUP)
+            assert signals.stop == "SIGHUP"
+        signal.signal(signal.SIGHUP, signal.SIG_IGN)
+        with StopSignals(status=False) as signals:
+            assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+            os.kill(os.getpid(), signal.SIGHUP)
+            assert signals.stop is None
+    finally:
+        signal.signal(signal.SIGHUP, before)
 
 
 def test_a_platform_without_sigusr1_still_gets_stop_signals(monkeypatch):

@@ -37,6 +37,15 @@ from.  Each frame goes through these rules, in arrival order:
   :class:`slipest.segmentation.CycleSegmenter`'s), never estimating from
   a lost sample.  One loss inserts at most ``max_fill`` evenly spaced
   samples (the rest shows as a time gap).
+* **Time glitches.**  A frame (absolute times) whose counter is one step on
+  from the last frame's but whose time disagrees with that (a corrupted
+  timestamp: an hour off, 2**64 - 1 us) is held for one frame: when the
+  next frame is two counter steps and about two periods on from the last
+  one taken, the held frame's time alone was wrong, and it is dropped
+  (``time_glitches``; the next frame finds it lost: a NaN sample in its
+  place); otherwise it is taken as the rules below take it.  A device
+  that restarts with its counter by chance one step on is thus seen a
+  frame later.
 * **Restarts.**  A device that starts again counts from scratch: its
   counter no longer follows its clock.  When the counter's jump and the time
   step disagree (by more than 2 frames + 100 ppm of the time step, modulo the
@@ -228,6 +237,7 @@ class WheelStream:
         self._stuck = False
         self._prev_az = _NAN
         self._fast_frames = 0  # frames taken by the vectorised run (tests check it is exercised)
+        self._suspect: tuple | None = None  # a frame whose time disagrees with its counter's step of one, held
         self.c = {
             "samples_in": 0,
             "samples_out": 0,
@@ -236,6 +246,7 @@ class WheelStream:
             "samples_filled": 0,
             "out_of_order": 0,
             "restarts": 0,
+            "time_glitches": 0,
             "frames_missed_at_start": 0,
             "stuck_runs": 0,
             "stuck_samples": 0,
@@ -297,8 +308,12 @@ class WheelStream:
         return s
 
     def flush(self) -> WheelSamples:
-        """Release held samples (end of stream): unchanged, as their run was too short."""
+        """Release held samples (end of stream): unchanged, as their run was too short; a frame held as a
+        suspected time glitch is taken as the rules take it without the frame after it (a restart)."""
         out = _Rows()
+        if self._suspect is not None:
+            suspect, self._suspect = self._suspect, None
+            self._frame(*suspect, out, judged=True)
         self._release(out, False)
         self.c["samples_out"] += len(out.t)
         return out.samples()
@@ -309,7 +324,16 @@ class WheelStream:
         return c
 
     # -- the rules, one frame at a time ---------------------------------------------
-    def _frame(self, seq, t, az, theta, intake, out: _Rows) -> None:
+    def _frame(self, seq, t, az, theta, intake, out: _Rows, judged: bool = False) -> None:
+        if self._suspect is not None:  # the frame after a suspected time glitch decides it
+            suspect, self._suspect = self._suspect, None
+            if self._follows_glitch(seq, t):
+                self.c["time_glitches"] += 1  # dropped: this frame finds it lost (a NaN sample in its place)
+            else:
+                self._frame(*suspect, out, judged=True)
+        elif not judged and self._time_glitch(seq, t):
+            self._suspect = (seq, t, az, theta, intake)
+            return
         if self.time_modulus:
             t = self._unwrap_time(t, intake, seq)
         else:
@@ -354,7 +378,7 @@ class WheelStream:
         period, omega = self._period, self._omega
         last_t, last_th = self._last_t, self._last_theta
         m = self.time_modulus
-        if period is None or last_t is None or self._held or self._stuck:
+        if period is None or last_t is None or self._held or self._stuck or self._suspect is not None:
             return None
         if m:
             if self._last_intake is None or self._last_raw_t is None:
@@ -447,6 +471,26 @@ class WheelStream:
             # no step the arrival times allow agrees with the counter: a restart (see _gap), at the arrival step
             return self._last_t + nearest_step
         return self._last_t + best_step
+
+    def _time_glitch(self, seq, traw: float) -> bool:
+        """Whether a frame is a suspected time glitch: absolute times, a learnt period, its counter one step on
+        from the last frame's, and its time disagreeing with that (a restart by the rules). Changes no state."""
+        if self.time_modulus or seq is None or self._period is None or self._last_t is None:
+            return False
+        if (seq - self._last_seq) % self.seq_modulus != 1:
+            return False
+        dt = traw + self._t_offset - self._last_t
+        if dt <= 0.0:
+            return self._clock_restarted(seq, -dt)
+        return self._gap(seq, dt) is None
+
+    def _follows_glitch(self, seq, traw: float) -> bool:
+        """Whether a frame, the one after a suspected time glitch, is two counter steps and about two periods on
+        from the last frame taken: then the suspect's time alone was wrong. Changes no state."""
+        if (seq - self._last_seq) % self.seq_modulus != 2:
+            return False
+        dt = traw + self._t_offset - self._last_t
+        return dt > 0.0 and self._gap(seq, dt) == 1
 
     def _gap(self, seq, dt: float) -> int | None:
         """Frames lost before this one, ``dt`` [s] after the last (None: a restart, not a loss).

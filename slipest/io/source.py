@@ -23,9 +23,10 @@ with ``_notice``; False to end the thread), and may override
 
 Notices are for people: one line each (a library's embedded traceback is
 cut off: :func:`one_line`), and those of one ``kind`` (a link that goes
-down and comes back, again and again) are rate-limited: three at once, then
-one per ten seconds, the next one saying how many were left out
-(``notices_suppressed``; the link's own counters count every event).
+down and comes back, again and again) are rate-limited
+(:mod:`slipest.io.notice_limit`: three at once, then one per ten seconds,
+the next one saying how many were left out; ``notices_suppressed``; the
+link's own counters count every event).
 """
 
 from __future__ import annotations
@@ -34,15 +35,12 @@ import abc
 import logging
 import queue
 import threading
-import time
 from dataclasses import dataclass
+
+from slipest.io.notice_limit import NoticeLimiter
 
 __all__ = ["Source", "SourceBatch", "drain", "one_line", "one_line_logs"]
 
-#: Notices of one kind: this many at once, then one per :data:`NOTICE_INTERVAL` seconds.
-NOTICE_BURST = 3
-#: [s] see :data:`NOTICE_BURST`.
-NOTICE_INTERVAL = 10.0
 
 
 def one_line(text: str) -> str:
@@ -133,9 +131,7 @@ class Source(abc.ABC):
         self._thread: threading.Thread | None = None
         self.ended = threading.Event()
         self.last_error: str | None = None
-        self.notices_suppressed = 0
-        self._notice_budget: dict[str, list] = {}  # kind -> [tokens, time, left out, last left out]
-        self._notice_lock = threading.Lock()  # notices come from the reader thread and from senders
+        self._limiter = NoticeLimiter()
 
     # -- what a link implements -------------------------------------------------------
     @abc.abstractmethod
@@ -168,20 +164,9 @@ class Source(abc.ABC):
         """A notice for people (one line); ``kind``: rate-limited with the others of that kind."""
         text = one_line(text)
         if kind is not None:
-            with self._notice_lock:
-                now = time.monotonic()
-                budget = self._notice_budget.setdefault(kind, [float(NOTICE_BURST), now, 0, ""])
-                budget[0] = min(float(NOTICE_BURST), budget[0] + (now - budget[1]) / NOTICE_INTERVAL)
-                budget[1] = now
-                if budget[0] < 1.0:
-                    budget[2] += 1
-                    budget[3] = text
-                    self.notices_suppressed += 1
-                    return
-                budget[0] -= 1.0
-                left_out, budget[2] = budget[2], 0
-            if left_out:
-                text += f" ({left_out} more like it not shown)"
+            text = self._limiter.admit(text, kind)
+            if text is None:
+                return
         self._notices.put(text)
 
     def _run(self) -> None:
@@ -227,11 +212,13 @@ class Source(abc.ABC):
         self._interrupt()
         if self._thread is not None:
             self._thread.join(timeout=2.0)
-        with self._notice_lock:
-            for budget in self._notice_budget.values():
-                if budget[2]:
-                    self._notices.put(f"{budget[2]} more like this not shown, the last: {budget[3]}")
-                    budget[2] = 0
+        for text in self._limiter.left_out():
+            self._notices.put(text)
+
+    @property
+    def notices_suppressed(self) -> int:
+        """Notices left out by the rate limit so far (:mod:`slipest.io.notice_limit`)."""
+        return self._limiter.suppressed
 
     def close(self) -> None:
         """Stop reading (:meth:`stop_reading`) and close the link (idempotent)."""

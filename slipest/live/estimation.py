@@ -32,6 +32,7 @@ from typing import Callable
 import numpy as np
 
 from slipest.io.device_stream import WheelSamples, WheelStream
+from slipest.io.notice_limit import NoticeLimiter
 from slipest.stuck import STUCK_TIME
 from slipest.latency import latency_summary
 from slipest.live.recording import Recording
@@ -114,6 +115,7 @@ class LiveEstimation:
         self._spare = None
         self.last_error: str | None = None
         self._notices: list[str] = []
+        self._limiter = NoticeLimiter()
 
     def add_listener(self, *, on_samples: Callable | None = None, on_estimate: Callable | None = None) -> None:
         """Also call ``on_samples(wheel, samples)`` with each wheel's samples (a
@@ -241,12 +243,19 @@ class LiveEstimation:
             self._measure_intake(np.asarray(t, np.float64), np.asarray(intake, np.float64))
         self._push(wheel, st, st.stream.add(seq, t, az, theta, intake))
         if st.stream.events:
-            self._notices += [f"wheel {wheel}: {text}" for text in st.stream.events]
+            for text in st.stream.events:  # rate-limited per wheel and kind: a device restarting again and again
+                said = self._limiter.admit(f"wheel {wheel}: {text}", f"{wheel}:{text.split(' (')[0]}")
+                if said is not None:
+                    self._notices.append(said)
             st.stream.events.clear()
 
     def notices(self) -> list[str]:
-        """Events for people since the last call (a device restart, frames a late start missed)."""
+        """Events for people since the last call (a device restart, frames a late start missed), three of a
+        kind at once then one per ten seconds (:mod:`slipest.io.notice_limit`); once closed, the ones left
+        out summed up."""
         out, self._notices = self._notices, []
+        if self._closed:
+            out += self._limiter.left_out()
         return out
 
     def _measure_intake(self, t, intake) -> None:

@@ -13,8 +13,10 @@ restart, frames a late start missed) to ``on_notice``, says when no data
 came for ``quiet_notice`` seconds (and when it comes back), and calls
 ``on_status`` on SIGUSR1.
 
-Signals (:class:`StopSignals`, main thread only): SIGTERM and SIGINT (and
-SIGBREAK where it exists: Windows' Ctrl-Break) set a flag the loop checks
+Signals (:class:`StopSignals`, main thread only): SIGTERM, SIGINT and
+SIGHUP (a lost terminal or ssh session; left alone where it is ignored, as
+under ``nohup``), and SIGBREAK where it exists (Windows' Ctrl-Break), set a
+flag the loop checks
 every ``poll`` seconds, so no batch is ever half handled; further ones are
 counted and ignored, so that nothing interrupts the shutdown (a double
 Ctrl-C loses nothing: the records and the report are complete).  The loop
@@ -41,8 +43,10 @@ __all__ = ["LoopState", "RunResult", "StopConditions", "StopSignals", "run_live"
 
 log = logging.getLogger(__name__)
 
-#: Signals that stop a run: SIGTERM, SIGINT and, on Windows, SIGBREAK (Ctrl-Break).
-STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGINT", "SIGBREAK") if hasattr(signal, name))
+#: Signals that stop a run: SIGTERM, SIGINT, SIGHUP (the terminal or the ssh session that started it went away;
+#: not where it is ignored, as under nohup) and, on Windows, SIGBREAK (Ctrl-Break).
+STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGINT", "SIGHUP", "SIGBREAK")
+                     if hasattr(signal, name))
 #: The signal that asks for the counters (None where the platform has no SIGUSR1, e.g. Windows).
 STATUS_SIGNAL = getattr(signal, "SIGUSR1", None)
 
@@ -158,7 +162,8 @@ class StopSignals:
     def __enter__(self) -> "StopSignals":
         if threading.current_thread() is not threading.main_thread():
             return self
-        handlers = {sig: self._on_stop for sig in STOP_SIGNALS}
+        handlers = {sig: self._on_stop for sig in STOP_SIGNALS if signal.getsignal(sig) is not signal.SIG_IGN
+                    or sig in (signal.SIGINT, signal.SIGTERM)}  # (a hang-up ignored on purpose stays so: nohup)
         if self.status and STATUS_SIGNAL is not None:
             handlers[STATUS_SIGNAL] = self._on_status
         for sig, handler in handlers.items():
