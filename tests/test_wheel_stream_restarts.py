@@ -189,3 +189,37 @@ def test_a_sped_up_device_read_in_a_burst_after_a_stall_is_no_restart(stall_s):
     c = stream.counters()
     assert c["restarts"] == 0 and c["frames_lost"] == 0
     np.testing.assert_allclose(out.t - out.t[0], dev_t - dev_t[0], atol=1e-9)  # the device's own time, no jump
+
+
+@pytest.mark.parametrize("bad_t", [3600.0, 1.8446744073709552e13, -50.0])
+@pytest.mark.parametrize("one_by_one", [False, True])
+def test_one_corrupted_timestamp_is_a_time_glitch_not_a_restart(bad_t, one_by_one):
+    """A frame whose time alone is corrupted (an hour on, 2**64 - 1 us, back in the past; its counter one step on):
+    dropped as a time glitch, a NaN sample in its place at its own time; no restart, nothing shifted, the same
+    samples frame by frame as in one call. (It used to count two restarts and shift every later time by as much.)"""
+    seq, t, az, th, host = device(3000, seed=7)
+    bad = t.copy()
+    bad[1500] = t[1500] + bad_t if bad_t > 0 else bad_t
+    stream = WheelStream()
+    if one_by_one:
+        s = WheelSamples.concatenate([stream.add([sq], [tt], [a], [h], i) for sq, tt, a, h, i
+                                      in zip(seq, bad, az, th, host + 0.002)] + [stream.flush()])
+    else:
+        s = feed(stream, [(seq, bad, az, th, None)], [host + 0.002])
+    c = stream.counters()
+    assert c["time_glitches"] == 1 and c["restarts"] == 0 and c["frames_lost"] == 1
+    assert len(s) == 3000 and np.allclose(s.t, t, atol=1e-9)
+    assert np.flatnonzero(np.isnan(s.az)).tolist() == [1500]
+    assert not any("restarted" in e for e in stream.events)
+
+
+def test_a_restart_whose_counter_is_by_chance_one_step_on_is_still_a_restart():
+    """A device rebooted with its counter, by chance, one step on: its next frame follows the new clock, not the
+    old one, so the held frame is taken as a restart (a frame later), not dropped."""
+    before = device(2000, seq0=0, t0=500.0, seed=8)
+    after = device(2000, seq0=2000, t0=0.001, seed=9)
+    stream = WheelStream()
+    s = feed(stream, [before, after], [before[4] + 0.002, after[4] + 600.0])
+    c = stream.counters()
+    assert c["restarts"] == 1 and c["time_glitches"] == 0 and len(s) == 4000 and not np.isnan(s.az).any()
+    assert np.all(np.diff(s.t) > 0)
