@@ -216,3 +216,25 @@ def test_a_can_source_gives_its_listeners_every_frame_before_decoding(tmp_path):
     got = [(m.arbitration_id, bytes(m.data)) for m in can.LogReader(str(log))]
     assert got == sent
     assert rec.counters() == {str(log): {"frames_recorded": 300, "frames_not_recorded": 0}}
+
+
+def test_a_samples_recording_that_cannot_be_written_names_its_file_and_rows(tmp_path):
+    """A samples CSV on a full disk (/dev/full): the error names the file and the rows it holds (was a bare
+    "[Errno 28] No space left on device")."""
+    if not os.path.exists("/dev/full"):
+        pytest.skip("no /dev/full here")
+    import numpy as np
+
+    from slipest.io.device_stream import WheelSamples
+    from slipest.live.recording import Recorder
+
+    path = tmp_path / "full.csv"
+    path.symlink_to("/dev/full")
+    rec = Recorder(str(path), n_legs=4, overwrite=True)
+    with pytest.raises(OSError, match=r"full\.csv: recording the samples failed \(No space left on device\) after "
+                                      r"0 rows"):
+        rec.open_wheel(0)
+        n = 5000
+        rec.add(0, WheelSamples(np.arange(n) * 1e-3, np.full(n, 9.81), np.zeros(n), np.full(n, np.nan),
+                                np.zeros(n, bool), np.zeros(n)))
+        rec.flush(force=True)

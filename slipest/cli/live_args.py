@@ -34,12 +34,14 @@ import argparse
 import json
 import logging
 import sys
+import time
 
 from slipest.cli.command import add_logging_arguments, leg_count
 from slipest.cli.estimator_args import add_estimator_arguments, model_from_args, soil_from_args
-from slipest.stuck import STUCK_TIME
+from slipest.cli.output_paths import output_problem
 from slipest.live import LiveEstimation, StopConditions, run_live
-from slipest.live.loop import StopSignals
+from slipest.live.loop import RunResult, StopSignals
+from slipest.stuck import STUCK_TIME
 
 #: What ``--format`` offers: CSV rows, JSON lines, or no estimates printed.
 FORMATS = ("csv", "jsonl", "none")
@@ -152,7 +154,11 @@ def view_from_args(prog: str, args, live):
 
 def live_from_args(args, source, on_estimate) -> LiveEstimation:
     """The warmed-up :class:`~slipest.live.LiveEstimation` the live options describe for ``source``
-    (SystemExit on a bad combination or an existing recording)."""
+    (SystemExit on a bad combination, an existing recording, or one that cannot be written where it is named)."""
+    for path in list(args.record or ()) + list(getattr(args, "record_frames", None) or ()):
+        problem = output_problem(path.replace("{wheel}", "0"), what="--record")
+        if problem:
+            raise SystemExit(f"slipest: {problem}")
     try:
         live = LiveEstimation(source, n_legs=args.legs, method=args.method, soil=soil_from_args(args),
                               use_reference=args.use_reference, model=model_from_args(args, args.legs), wheels=args.wheel,
@@ -242,14 +248,18 @@ def run_command(prog: str, args, source, live: LiveEstimation, started: str, vie
                     "(a further Ctrl-C or SIGTERM is ignored)")
 
             stop = StopConditions(duration=args.duration, cycles=args.cycles, idle_timeout=args.idle_timeout)
+            t0 = time.monotonic()
+            failed = None
             try:
                 result = run_live(source, live, stop, signals=signals, on_status=status, on_stopping=stopping,
                                   on_notice=lambda text: say(text, logging.WARNING), quiet_notice=args.quiet_notice)
             except FileExistsError as exc:  # the recording of a wheel that appeared later
                 raise SystemExit(f"{prog}: {exc}; use --overwrite") from None
             except OSError as exc:  # a recording that cannot be written (the run is closed: what was read is in)
-                raise SystemExit(f"{prog}: {exc}") from None
-            say(result.reason)
+                failed = exc.strerror if isinstance(exc.strerror, str) and exc.errno else str(exc)
+                result = RunResult(f"stopped: {failed}", False, time.monotonic() - t0, source.counters(),
+                                   live.counters(), live.latency())
+            say(result.reason, logging.ERROR if failed else logging.INFO)
             log.info("%s", format_counters(result.source, result.estimation, result.latency))
             if view is not None:
                 view.close()
@@ -261,6 +271,8 @@ def run_command(prog: str, args, source, live: LiveEstimation, started: str, vie
                     report["view"] = view.counters()
                 with open(args.report, "w") as fh:
                     json.dump(report, fh, indent=1, default=str)
+            if failed:
+                raise SystemExit(f"{prog}: {failed}")
             if signals.ignored:
                 log.info("%d more stop signal(s) ignored while stopping (nothing was lost)", signals.ignored)
     finally:

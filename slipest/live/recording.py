@@ -98,9 +98,14 @@ class Recorder:
         """Create the wheel's file (its header and metadata); FileExistsError when it exists."""
         meta = {"nL": self.n_legs, "wheel": wheel, "source": self.source,
                 "recorded": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
-        self._writers[wheel] = LogWriter(record_path(self.template, wheel), ("t", "az", "theta", "slip"),
-                                         metadata=meta, overwrite=self.overwrite,
-                                         comments=["recorded live by slipest; az=nan rows stand for lost frames"])
+        try:
+            self._writers[wheel] = LogWriter(record_path(self.template, wheel), ("t", "az", "theta", "slip"),
+                                             metadata=meta, overwrite=self.overwrite,
+                                             comments=["recorded live by slipest; az=nan rows stand for lost frames"])
+        except FileExistsError:
+            raise
+        except OSError as exc:
+            raise self._failed(wheel, exc) from None
         self._pending[wheel] = []
 
     def add(self, wheel: int, samples: WheelSamples) -> None:
@@ -120,8 +125,19 @@ class Recorder:
                 s = WheelSamples.concatenate(pending)
                 pending.clear()  # taken before writing: whatever happens, no row is ever written twice
                 writer = self._writers[wheel]
-                writer.write(s.t, s.az, s.theta, s.slip)
-                writer.flush()
+                try:
+                    writer.write(s.t, s.az, s.theta, s.slip)
+                    writer.flush()
+                except OSError as exc:
+                    raise self._failed(wheel, exc, len(s)) from None
+
+    def _failed(self, wheel: int, exc: OSError, lost: int = 0) -> OSError:
+        """``exc`` naming the wheel's file and what it holds (the recording stops there)."""
+        writer = self._writers.get(wheel)
+        done = writer.rows_written if writer is not None else 0
+        return OSError(exc.errno, f"{record_path(self.template, wheel)}: recording the samples failed "
+                                  f"({exc.strerror or exc}) after {done} rows"
+                                  + (f"; {lost} samples not recorded, and none after them" if lost else ""))
 
     def rows(self, wheel: int) -> int | None:
         """Rows written for the wheel so far (None: not recorded)."""
@@ -133,8 +149,14 @@ class Recorder:
         try:
             self.flush(force=True)
         finally:
-            for writer in self._writers.values():
-                writer.close()
+            first = None
+            for wheel, writer in self._writers.items():  # every file closed, the first failure raised
+                try:
+                    writer.close()
+                except OSError as exc:
+                    first = first or self._failed(wheel, exc)
+            if first is not None:
+                raise first
 
 
 class FrameRecorder:
