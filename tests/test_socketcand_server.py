@@ -591,3 +591,33 @@ def test_round_trip_over_real_vcan0():
         echoed = [bus.recv(5.0) for _ in frames]
         finish_peer(peer)
     assert [msg_tuple(m) for m in echoed] == [msg_tuple(m) for m in frames]
+
+
+def test_idle_connections_that_open_no_bus_cannot_lock_the_others_out(monkeypatch):
+    """Connections that never open a bus (a port scanner, a hostile client) fill the limit: once they have been
+    idle for OPEN_GRACE, a new client takes the place of the oldest (used to be refused for as long as they
+    stayed)."""
+    monkeypatch.setattr(ss, "OPEN_GRACE", 0.3)
+    host, port, stop = ss.start_in_thread(max_clients=3)
+    idle = []
+    try:
+        idle = [socket.create_connection((host, port), timeout=5) for _ in range(3)]
+        for sock in idle:
+            assert sock.recv(64) == b"< hi >"
+        refused = socket.create_connection((host, port), timeout=5)  # within the grace: refused
+        assert refused.recv(64) == b"< error too many clients >"
+        refused.close()
+        time.sleep(0.5)
+        bus = socketcand_bus(host, port)  # past it: the oldest idle one makes room
+        bus.shutdown()
+        try:  # it was the one dropped (reset, as a dropped client is)
+            gone = idle[0].recv(64) == b""
+        except ConnectionResetError:
+            gone = True
+        assert gone
+        s = stop.stats()
+    finally:
+        for sock in idle:
+            sock.close()
+        stop()
+    assert s["clients_dropped"] == 1 and s["clients_refused"] == 1

@@ -49,8 +49,10 @@ budget too:
   disconnected (``clients_dropped``; reset, so the bytes the kernel held
   for it go too), then the next, until the queues fit;
 * at most ``max_clients`` connections (256); past it a new one takes the
-  place of the slowest client if one has bytes queued (dropped), else it is
-  answered ``< error too many clients >`` and closed (``clients_refused``).
+  place of the slowest client if one has bytes queued (dropped), else of the
+  oldest connection that opened no bus in :data:`OPEN_GRACE` seconds (5: an
+  idle or hostile client never locks the others out), else it is answered
+  ``< error too many clients >`` and closed (``clients_refused``).
 
 A client that reads keeps an empty queue and is never the one dropped: with
 200 clients that never read, the server stays within its budget and the
@@ -117,6 +119,8 @@ _DEFAULT_MAX_CLIENT_BUFFER = 4 * 1024 * 1024  # [bytes]
 DEFAULT_MAX_BUFFER = 32 * 1024 * 1024
 #: Connections at once, by default.
 DEFAULT_MAX_CLIENTS = 256
+#: [s] a connection that opened no bus for this long may be dropped to make room for a new one.
+OPEN_GRACE = 5.0
 _DEFAULT_JOIN_GRACE = 0.02  # [s]
 _DEFAULT_SNDBUF = 256 * 1024  # [bytes]
 
@@ -166,6 +170,7 @@ class _Client(asyncio.Protocol):
         self._pending_bytes = 0
         self._join_timer: asyncio.TimerHandle | None = None
         self.accepted = False  # counted among the clients (not refused)
+        self.connected_at = time.monotonic()  # host monotonic time of the connection [s]
         self.queued = 0  # bytes queued for it in the server, as last seen [bytes]
 
     # -- asyncio callbacks -----------------------------------------------------
@@ -416,9 +421,15 @@ class SocketcandServer:
         if len(self._clients) >= self.max_clients:
             slowest = max(self._clients, key=lambda cl: cl.queued, default=None)
             if slowest is None or slowest.queued == 0:
-                self.counters["clients_refused"] += 1
-                log.info("client %s refused: %d clients already", client.peer, len(self._clients))
-                return False
+                # else the oldest connection that never opened a bus within OPEN_GRACE (an idle or hostile
+                # client must not lock the others out)
+                now = time.monotonic()
+                idle = [cl for cl in self._clients if cl.state == _NO_BUS and now - cl.connected_at > OPEN_GRACE]
+                if not idle:
+                    self.counters["clients_refused"] += 1
+                    log.info("client %s refused: %d clients already", client.peer, len(self._clients))
+                    return False
+                slowest = min(idle, key=lambda cl: cl.connected_at)
             self._drop(slowest, f"to make room for {client.peer} ({self.max_clients} clients at most)")
         client.accepted = True
         self._clients.add(client)
