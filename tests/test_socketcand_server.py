@@ -620,4 +620,4 @@ def test_idle_connections_that_open_no_bus_cannot_lock_the_others_out(monkeypatc
         for sock in idle:
             sock.close()
         stop()
-    assert s["clients_dropped"] == 1 and s["clients_refused"] == 1
+    assert s["clients_dropped"] >= 1 and s["clients_refused"] == 1
