@@ -152,8 +152,8 @@ def units_hint(mean_g: float, level: str = "rigid-phase mean") -> str:
 
 @numba.njit(cache=True)
 def _rigid_mean(theta_phase, az, half):
-    """Mean ``az`` [input units] over the rigid half's phases ``[-0.8 half, -0.05 half]`` (NaN when empty).
-    Compiled: on a cycle's closing sample numpy's masked mean took about 0.15 ms, this 0.01 ms."""
+    """Mean ``az`` [input units] over the rigid half's phases ``[-0.8 half, -0.05 half]`` (NaN when empty;
+    compiled, for the closing sample's latency)."""
     lo = -0.8 * half
     hi = -0.05 * half
     acc = 0.0
@@ -471,6 +471,9 @@ class SlipEstimator:
             arr.flags.writeable = False
         cycle_features(ph, az, tt, n_legs=self.n_legs)
         sample_noise(ph, az, n_legs=self.n_legs)
+        repeat_runs(az, math.nan, 0)
+        _rigid_mean(ph, az, half)
+        _rigid_mean(np.array(ph), np.array(az), half)  # (and on writable ones: a cycle's samples cleaned)
 
     def _make_filter(self) -> None:
         """The cycle estimator of ``method`` (one place that knows the methods), checked against the geometry."""
