@@ -135,8 +135,9 @@ def test_a_config_file_gives_the_options_and_the_command_line_overrides_it(tmp_p
 @pytest.mark.parametrize("text,message", [
     ("wheels = [0]", "unknown key 'wheels' (did you mean 'wheel'?)"),
     ("config = 'x.toml'", "unknown key 'config' (keys: baudrate, cycles, dphi, duration, format, "),
-    ("legs = 'four'", "key 'legs': expected an integer, got 'four'"),
-    ("legs = 4.5", "key 'legs': expected an integer, got 4.5"),
+    ("legs = 'four'", "key 'legs': expected a whole number of legs >= 1, got 'four'"),
+    ("legs = 4.5", "key 'legs': expected a whole number of legs >= 1, got 4.5"),
+    ("legs = 0", "key 'legs': expected a whole number of legs >= 1, got 0"),
     ("kS = true", "key 'kS': true/false is for flags; expected a number"),
     ("use-reference = 1", "key 'use-reference': a flag takes true or false, got 1"),
     ("method = 'magic'", "key 'method': 'magic' is not one of default, eq515"),

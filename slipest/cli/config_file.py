@@ -35,6 +35,8 @@ import difflib
 import os
 import tomllib
 
+from slipest.cli.command import leg_count
+
 #: Options whose value is a path: taken relative to the configuration file's directory.
 PATH_OPTIONS = frozenset({"model", "rover", "record", "record_frames", "report"})
 #: Options a file may give as a table ``{KEY = VALUE}`` (the keywords of the CAN bus).
@@ -66,7 +68,7 @@ def _is_repeatable(action: argparse.Action) -> bool:
 
 
 def _expected(action: argparse.Action) -> str:
-    return {int: "an integer", float: "a number"}.get(action.type, "a value")
+    return {int: "an integer", float: "a number", leg_count: "a whole number of legs >= 1"}.get(action.type, "a value")
 
 
 def _scalar(action: argparse.Action, value, fail):
@@ -75,13 +77,14 @@ def _scalar(action: argparse.Action, value, fail):
         fail(f"expected a single value, got {'a table' if isinstance(value, dict) else 'a list'}")
     if isinstance(value, bool):
         fail(f"true/false is for flags; expected {_expected(action)}")
-    if action.type is int and isinstance(value, float):
-        fail(f"expected an integer, got {value!r}")
+    if action.type in (int, leg_count) and isinstance(value, float):
+        fail(f"expected {_expected(action)}, got {value!r}")
     text = str(value)
     try:
         out = action.type(text) if action.type is not None else text
-    except (TypeError, ValueError) as exc:
-        fail(f"expected {_expected(action)}, got {value!r}" + ("" if action.type in (int, float) else f" ({exc})"))
+    except (TypeError, ValueError, argparse.ArgumentTypeError) as exc:
+        fail(f"expected {_expected(action)}, got {value!r}"
+             + ("" if action.type in (int, float, leg_count) else f" ({exc})"))
     if action.choices is not None and out not in action.choices:
         fail(f"{value!r} is not one of {', '.join(map(str, action.choices))}")
     return out
