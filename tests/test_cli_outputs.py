@@ -61,3 +61,12 @@ def test_a_plot_is_written_where_it_is_named_whatever_its_extension(log, tmp_pat
     assert main(["replay", str(log), "-o", str(tmp_path / "rows.csv"), "--plot", str(target)]) == 0
     assert target.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and not (tmp_path / "plot_without_extension.png").exists()
     assert f"wrote {target}" in capsys.readouterr().err
+
+
+def test_a_command_that_makes_its_directories_may_name_a_new_one(tmp_path):
+    """calibrate creates the rover file's directories (it always did): a new directory is no problem there."""
+    from slipest.cli.output_paths import output_problem
+
+    new = tmp_path / "rovers" / "r.json"
+    assert output_problem(new, makes_dirs=True) is None
+    assert "no directory" in output_problem(new)

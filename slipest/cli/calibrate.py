@@ -95,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
     from slipest.rover.calibrate import CalibrateOptions
     from slipest.rover.report import report_lines
 
-    problem = output_problem(args.output, args.logs)
+    problem = output_problem(args.output, args.logs, makes_dirs=True)  # (write_rover creates them)
     if problem:  # before the calibration's minutes, not after
         _fail(problem)
     effects = tuple(e.strip() for e in args.effects.split(",") if e.strip()) if args.effects else None

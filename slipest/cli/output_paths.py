@@ -9,16 +9,18 @@ from __future__ import annotations
 import os
 
 
-def output_problem(output: str | os.PathLike | None, inputs=(), what: str = "-o") -> str | None:
+def output_problem(output: str | os.PathLike | None, inputs=(), what: str = "-o",
+                   makes_dirs: bool = False) -> str | None:
     """Why ``output`` (a path; ``None`` or ``"-"``: stdout, always fine) cannot be written, or None: it is one
-    of ``inputs`` (the same file, by any name), an existing directory, or in a directory that does not exist."""
+    of ``inputs`` (the same file, by any name), an existing directory, or in a directory that does not exist
+    (unless the command ``makes_dirs``: it creates them)."""
     if output is None or str(output) == "-":
         return None
     out = os.fspath(output)
     if os.path.isdir(out):
         return f"{what} {out} is a directory: name a file"
     parent = os.path.dirname(os.path.abspath(out))
-    if not os.path.isdir(parent):
+    if not makes_dirs and not os.path.isdir(parent):
         return f"{what} {out}: no directory {parent}"
     if os.path.exists(out):
         for name in inputs:
