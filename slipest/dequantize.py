@@ -34,7 +34,7 @@ Angles jumping by more than pi (and less than 3 pi) between consecutive
 samples are taken as a wrap (the output is then unwrapped; :class:`slipest.segmentation.CycleSegmenter`
 takes either). Samples with a non-finite angle keep it and keep their place;
 so does a glitched angle, 3 pi or more from the previous valid one (a
-corrupted value), unless :data:`JUMP_CONFIRM` come in a row: a new level
+corrupted value), unless :data:`~slipest.segmentation.JUMP_CONFIRM` come in a row: a new level
 (a restart), from which the interpolation starts over.
 
 Units: t [s], theta [rad]; az and the reference slip are carried through.
@@ -46,6 +46,8 @@ import math
 
 import numba
 import numpy as np
+
+from slipest.segmentation import JUMP_CONFIRM
 
 #: Counts (runs between count changes) the detection looks at [-].
 RUNS = 16
@@ -66,9 +68,8 @@ _PT, _KT, _KV, _KT0, _KV0, _NKNOT, _STALL, _T0, _WRAP, _NINT = range(_N_DETECT, 
 # glitched angles in a row (a jump of 3 pi or more from the previous valid angle: not a wrap, not a count)
 _JUMPS = _N_DETECT + 10
 _N_STATE = _N_DETECT + 11
-#: Glitched angles in a row that make a new level (a restart, a re-zeroed encoder): taken from the last of them.
-JUMP_CONFIRM = 5
 _JUMP = 3.0 * math.pi
+_PLAIN, _GLITCH, _NEW_LEVEL = 0, 1, 2  # what _jump says of an angle
 
 
 @numba.njit(cache=True)
@@ -89,15 +90,18 @@ def _unwrapped(state, theta):
 
 
 @numba.njit(cache=True)
-def _glitch(state, th):
-    """Whether the angle ``th`` (unwrapped) is a glitch: 3 pi or more from the previous valid angle, not yet
-    :data:`JUMP_CONFIRM` in a row (counted in the state; a sample that is not one resets the count)."""
+def _jump(state, th):
+    """What the angle ``th`` (unwrapped) is: ``_GLITCH`` when 3 pi or more from the previous valid angle, not yet
+    :data:`~slipest.segmentation.JUMP_CONFIRM` in a row (counted in the state), ``_NEW_LEVEL`` for the one that
+    makes that many, else ``_PLAIN`` (the count starts over)."""
     if state[_HAVE] > 0.0 and not abs(th - state[_PREV]) < _JUMP:
         state[_JUMPS] += 1.0
         if state[_JUMPS] < JUMP_CONFIRM:
-            return True
+            return _GLITCH
+        state[_JUMPS] = 0.0
+        return _NEW_LEVEL
     state[_JUMPS] = 0.0
-    return False
+    return _PLAIN
 
 
 @numba.njit(cache=True)
@@ -107,7 +111,7 @@ def _observe(state, ring, t, theta):
     if not math.isfinite(theta) or not math.isfinite(t):
         return False
     th = _unwrapped(state, theta)
-    if _glitch(state, th):
+    if _jump(state, th) == _GLITCH:
         return False
     started = False
     if state[_HAVE] > 0.0 and th == state[_PREV]:
@@ -163,13 +167,14 @@ def _interpolate(state, t, theta, out, start, stop):
                 released = i + 1
             continue
         th = _unwrapped(state, raw)
-        if _glitch(state, th):  # kept as reported, and out of the interpolation, as a non-finite angle is
+        jump = _jump(state, th)
+        if jump == _GLITCH:  # kept as reported, and out of the interpolation, as a non-finite angle is
             out[i] = raw
             if state[_STALL] > 0.0:
                 released = i + 1
             continue
         out[i] = th
-        if state[_HAVE] > 0.0 and not abs(th - state[_PREV]) < _JUMP:  # a new level: let through, started over
+        if jump == _NEW_LEVEL:  # let through, started over
             state[_STALL] = 1.0
             state[_PREV] = th
             state[_PT] = ti

@@ -99,7 +99,7 @@ import numpy as np
 
 from .units import G
 
-__all__ = ["QUALITIES", "QUALITY_PRIORITY", "LegCycle", "CycleSegmenter", "usable"]
+__all__ = ["JUMP_CONFIRM", "QUALITIES", "QUALITY_PRIORITY", "LegCycle", "CycleSegmenter", "usable"]
 
 #: Flags in the order used to pick a cycle's ``quality`` (first present wins).
 QUALITY_PRIORITY = (
@@ -121,7 +121,9 @@ _INIT, _FORWARD, _REVERSE = 0, 1, 2  # modes; _INIT (a fresh state) until the fi
 _CLOSE_EPS = 1e-6  # rad; pre-check margin before the exact floor() test
 _SYNC_EPS = 1e-4  # rad; a first sample this close before a cycle's start starts that cycle (a rounded angle)
 _JUMP_SLACK = 0.5  # rad; a theta step this much beyond max_speed times the time step is a jump
-_JUMP_CONFIRM = 5  # jumped samples in a row that agree with each other: a new level, taken
+#: Jumped samples in a row that agree with each other make a new level (a restart, a re-zeroed encoder), taken from
+#: the last of them (here and in :mod:`slipest.dequantize`'s interpolation).
+JUMP_CONFIRM = 5
 # a cycle's flags as bits, bit b standing for QUALITY_PRIORITY[b]
 _F_REVERSE, _F_TOO_LONG, _F_PARTIAL, _F_TIME, _F_GAP, _F_STOPPED, _F_NAN, _F_SATURATED, _F_SPARSE = (
     1 << b for b in range(len(QUALITY_PRIORITY)))
@@ -360,14 +362,14 @@ def _advance(st, buf, t, az, theta, i, clip_values):
                 th = raw + nwrap * _TWO_PI
             if s.have_ok and not abs(th - s.ok_th) <= s.max_speed * max(ti - s.ok_t, 0.0) + _JUMP_SLACK:
                 # further from the last angle taken than the leg can turn: a glitch, unless it starts a run of
-                # _JUMP_CONFIRM that agree (a restart, a re-zeroed encoder: a new level, taken from then on)
+                # JUMP_CONFIRM that agree (a restart, a re-zeroed encoder: a new level, taken from then on)
                 if s.cand_n > 0 and abs(th - s.cand_th) <= s.max_speed * max(ti - s.cand_t, 0.0) + _JUMP_SLACK:
                     s.cand_n += 1
                 else:
                     s.cand_n = 1
                 s.cand_t = ti
                 s.cand_th = th
-                if s.cand_n < _JUMP_CONFIRM:
+                if s.cand_n < JUMP_CONFIRM:
                     s.samples_jump += 1
                     i += 1
                     continue

@@ -41,6 +41,7 @@ from slipest.cli.estimator_args import add_estimator_arguments, model_from_args,
 from slipest.cli.output_paths import output_problem
 from slipest.live import LiveEstimation, StopConditions, run_live
 from slipest.live.loop import RunResult, StopSignals
+from slipest.live.recording import record_path
 from slipest.stuck import STUCK_TIME
 
 #: What ``--format`` offers: CSV rows, JSON lines, or no estimates printed.
@@ -156,7 +157,7 @@ def live_from_args(args, source, on_estimate) -> LiveEstimation:
     """The warmed-up :class:`~slipest.live.LiveEstimation` the live options describe for ``source``
     (SystemExit on a bad combination, an existing recording, or one that cannot be written where it is named)."""
     for path in list(args.record or ()) + list(getattr(args, "record_frames", None) or ()):
-        problem = output_problem(path.replace("{wheel}", "0"), what="--record")
+        problem = output_problem(record_path(path, 0), what="--record")
         if problem:
             raise SystemExit(f"slipest: {problem}")
     try:
