@@ -364,3 +364,21 @@ def test_time_skew_is_an_angle_offset_at_one_leg_speed():
     m = 200  # the skew in whole samples: the skewed stream is the offset one, m samples later
     np.testing.assert_allclose(a.az[m:], b.az[:-m], atol=1e-12)
     np.testing.assert_allclose(a.theta[m:], b.theta[:-m], atol=1e-9)
+
+
+def test_a_time_skewed_run_starts_with_the_signal_from_before_its_start():
+    """The IMU's first samples of a skewed run were taken before the run's start: the stream simulates them (a
+    lead-in cycle like the first) instead of holding the first value, which the estimator would call a stuck
+    sensor."""
+    from slipest.model.stream import CycleTimeline
+
+    sc = dict(rate=1000.0, noise_g=0.0)
+    a = simulate_stream(Scenario.constant(3, StickSlipParams(), effects=({"name": "time_skew", "skew": 0.2},), **sc))
+    b = simulate_stream(Scenario.constant(3, StickSlipParams(), **sc))
+    assert a.t[0] == 0.0 and a.cycle[0] == 0 and len(a.t) == len(b.t)
+    np.testing.assert_allclose(a.theta, b.theta, atol=1e-12)  # 0.2 s is whole samples: the angle is not delayed
+    # az at t < 0.2 s is the signal 0.2 s earlier: the end of the cycle before, which repeats the first
+    period = CycleTimeline(StickSlipParams()).period
+    early = a.t < 0.2
+    np.testing.assert_allclose(a.az[early], np.interp(a.t[early] - 0.2 + period, b.t, b.az), atol=2e-3)
+    assert np.ptp(a.az[early]) > 1.0

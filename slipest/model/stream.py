@@ -144,8 +144,21 @@ def cycle_starts(scenario: Scenario) -> np.ndarray:
     return _Schedule([transform(c) for c in scenario.cycles]).start
 
 
+def _lead_in_cycles(first: StickSlipParams, stages) -> int:
+    """How many copies of the first cycle to simulate before ``t = 0`` so every stage's ``lead_in`` [s] is covered."""
+    lead = max((float(getattr(s, "lead_in", 0.0)) for s in stages), default=0.0)
+    if not lead > 0.0:
+        return 0
+    return int(math.floor(lead / CycleTimeline(first).period)) + 1
+
+
 def iter_stream(scenario: Scenario, chunk_cycles: int = 32) -> Iterator[SampleChunk]:
-    """Yield the scenario's samples in chunks of ``chunk_cycles`` leg cycles."""
+    """Yield the scenario's samples in chunks of ``chunk_cycles`` leg cycles.
+
+    A sensor stage that needs signal from before the run's start (its
+    ``lead_in`` [s], e.g. a time skew's delay) gets it from lead-in cycles
+    that repeat the first cycle before ``t = 0`` (the rover was already
+    driving); their samples pass the stages and are not yielded."""
     if chunk_cycles < 1:
         raise ValueError("chunk_cycles must be >= 1")
     transform, effect_stages = _effect_chain(scenario)
@@ -154,32 +167,35 @@ def iter_stream(scenario: Scenario, chunk_cycles: int = 32) -> Iterator[SampleCh
     stages += [GaussianNoise(scenario.noise_g)]
     stages += [s for s in effect_stages if s.domain == "sampled"]
     rng = np.random.default_rng(scenario.seed)
-    schedule = _Schedule(cycles)
-    start = schedule.start
+    n_lead = _lead_in_cycles(cycles[0], effect_stages)
+    ext = [cycles[0]] * n_lead + cycles  # lead-in cycles, then the run's
+    slips = np.array([scenario.cycles[0].slip] * n_lead + [c.slip for c in scenario.cycles])
+    schedule = _Schedule(ext)
+    start = schedule.start - schedule.start[n_lead]  # the run's time: 0 at its first cycle's start
     n_legs = cycles[0].nL
     dt = scenario.dt
     rate = scenario.rate
     for k0 in range(0, len(cycles), chunk_cycles):
         k1 = min(k0 + chunk_cycles, len(cycles))
-        chunk_params = cycles[k0:k1]
-        batch = simulate_batch(chunk_params, dt=dt, waveforms=True)
-        # continuous signal on the model grid covering [start k0, start k1)
-        n = np.arange(math.ceil(start[k0] / dt - 1e-9), math.ceil(start[k1] / dt - 1e-9))
+        e0, e1 = (k0 + n_lead if k0 else 0), k1 + n_lead  # the first chunk carries the lead-in
+        batch = simulate_batch(ext[e0:e1], dt=dt, waveforms=True)
+        # continuous signal on the model grid covering [start e0, start e1)
+        n = np.arange(math.ceil(start[e0] / dt - 1e-9), math.ceil(start[e1] / dt - 1e-9))
         t_grid = n * dt
-        k_grid = schedule.cycle_of(t_grid, k0, k1)
-        phi_grid = schedule.phase(t_grid, k_grid)
-        az_grid = _hub_acceleration(k_grid, phi_grid, k0, schedule, chunk_params, batch) + cycles[0].g
-        theta_grid = 2 * math.pi * k_grid / n_legs + phi_grid
+        k_grid = schedule.cycle_of(t_grid + schedule.start[n_lead], e0, e1)
+        phi_grid = schedule.phase(t_grid + schedule.start[n_lead], k_grid)
+        az_grid = _hub_acceleration(k_grid, phi_grid, e0, schedule, ext[e0:e1], batch) + cycles[0].g
+        theta_grid = 2 * math.pi * (k_grid - n_lead) / n_legs + phi_grid
         az_grid, _ = run_stages(stages, "continuous", t_grid, az_grid, theta_grid, rng)
-        # IMU samples in [start k0, start k1)
-        s = np.arange(math.ceil(start[k0] * rate - 1e-9), math.ceil(start[k1] * rate - 1e-9))
+        # IMU samples in [start e0, start e1)
+        s = np.arange(math.ceil(start[e0] * rate - 1e-9), math.ceil(start[e1] * rate - 1e-9))
         t = s / rate
         az = np.interp(t, t_grid, az_grid)
-        k = schedule.cycle_of(t, k0, k1)
-        theta = 2 * math.pi * k / n_legs + schedule.phase(t, k)
+        k = schedule.cycle_of(t + schedule.start[n_lead], e0, e1)
+        theta = 2 * math.pi * (k - n_lead) / n_legs + schedule.phase(t + schedule.start[n_lead], k)
         az, theta = run_stages(stages, "sampled", t, az, theta, rng)
-        slips = np.array([c.slip for c in scenario.cycles[k0:k1]])
-        yield SampleChunk(t=t, az=az, theta=theta, slip=slips[k - k0], cycle=k)
+        run = k >= n_lead
+        yield SampleChunk(t=t[run], az=az[run], theta=theta[run], slip=slips[k[run]], cycle=k[run] - n_lead)
 
 
 def simulate_stream(scenario: Scenario) -> SampleChunk:

@@ -18,9 +18,12 @@ class TimeSkew:
     samples ``m = ceil(skew * rate)`` and ``theta`` by the remainder
     ``m / rate - skew`` (linear interpolation of the smooth angle, so the
     accelerometer's noise is not smoothed); for ``skew < 0``, ``theta`` is
-    delayed by ``-skew``. Before the stream's first sample, ``az`` holds its
-    first value and ``theta`` continues at the first two samples' speed. The
-    sample rate is that of the first chunk (at least two samples).
+    delayed by ``-skew``. The stage asks for ``lead_in`` = ``|skew|`` of
+    signal before a run's start, which :func:`slipest.model.stream.iter_stream`
+    simulates and drops; a caller that gives it none gets ``az`` held at its
+    first value and ``theta`` continued at the first two samples' speed for
+    that long. The sample rate is that of the first chunk (at least two
+    samples).
     """
 
     domain = "sampled"
@@ -34,6 +37,11 @@ class TimeSkew:
         self._th_tail = np.empty(0)
         self._speed0 = None  # theta's speed at the stream's start [rad/s]
         self._period = None  # sample period [s]
+
+    @property
+    def lead_in(self) -> float:
+        """Signal [s] the stage needs from before a run's first sample: the skew's size."""
+        return abs(self.skew)
 
     def apply(self, t, az, theta, rng):
         if self.skew == 0.0 or len(t) == 0:
