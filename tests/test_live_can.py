@@ -128,10 +128,12 @@ def test_the_estimator_and_device_reconnect_when_the_server_dies_and_comes_back(
     report = tmp_path / "live.json"
     est = dev = server2 = None
     try:
-        est = slipest_cmd("can", *socketcand_args(port), "--cycles", "10", "--idle-timeout", "8",
+        est = slipest_cmd("can", *socketcand_args(port), "--cycles", "18", "--idle-timeout", "8",
                           "--duration", "60", "--report", str(report), "--sim-speed", "4")
         est.wait_err("listening on CAN bus", timeout=60)
-        dev = firmware_sim("can", *socketcand_args(port), "--cycles", "12", "--speed", "4", "--noise", "0.01",
+        # 20 cycles: the outage (a new server's start-up and the device's back-off, 2-4 s of wall time under load,
+        # 5-10 cycles at 4x) leaves cycles to estimate after it
+        dev = firmware_sim("can", *socketcand_args(port), "--cycles", "20", "--speed", "4", "--noise", "0.01",
                            "--seed", "9")
         dev.wait_line("streaming", timeout=60)
         est.wait_line(r"^0,1,", timeout=30)
@@ -150,9 +152,11 @@ def test_the_estimator_and_device_reconnect_when_the_server_dies_and_comes_back(
     assert "reconnected" in est.stderr
     assert any("reconnected" in line for line in dev.lines)
     last = max(k for _, k in rows)
-    assert last >= 8 and rows[(0, 7)]["quality"] == rows[(0, 8)]["quality"] == "ok"  # estimating again
+    quality = [rows[(0, k)]["quality"] for k in range(last + 1)]
     assert live["estimation"]["wheel0"]["frames_lost"] > 0  # the outage is a counted loss...
-    assert any(rows[(0, k)]["quality"] != "ok" for k in range(2, last))  # ...and its cycles are flagged
+    flagged = [k for k in range(2, last) if quality[k] != "ok"]
+    assert flagged, quality  # ...and its cycles are flagged
+    assert last >= 16 and quality[flagged[-1] + 1:flagged[-1] + 3] == ["ok", "ok"], quality  # estimating again
 
 
 # --- python-can's own tools, in-process pieces ---------------------------------------------------
