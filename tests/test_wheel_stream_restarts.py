@@ -77,6 +77,52 @@ def test_a_reordered_or_repeated_frame_is_still_dropped():
     assert stream.counters()["out_of_order"] == 2 and stream.counters()["restarts"] == 0 and len(s) == 300
 
 
+@pytest.mark.parametrize("one_by_one", [False, True])
+def test_a_can_frame_sent_late_is_dropped_as_out_of_order_not_a_restart(one_by_one):
+    """Wrapped times cannot go back: a CAN frame that arrives 3 frames late was unwrapped a whole TimeMod period
+    (0.655 s) ahead, a restart that shifted every later time (80 late frames of 40,000 lost every cycle). Now its
+    counter and wrapped time going back together make it a reordering: dropped, the frame it came after having
+    counted it lost."""
+    seq, t, az, th, host = device(6000, seed=8, modulus=256, wrapped=True)
+    order = list(range(6000))
+    late = list(range(400, 5600, 700))
+    for j in late:  # frame j comes 3 frames late
+        order.remove(j)
+        order.insert(order.index(j + 3) + 1, j)
+    stream = WheelStream(seq_modulus=256, time_modulus=0.65536)
+    cols = tuple(c[order] for c in (seq, t, az, th, host))
+    if one_by_one:
+        s = WheelSamples.concatenate([stream.add(*(c[i:i + 1] for c in cols[:4]), cols[4][i:i + 1])
+                                      for i in range(6000)] + [stream.flush()])
+    else:
+        s = feed(stream, [cols], [cols[4]])
+    c = stream.counters()
+    assert c["out_of_order"] == len(late) and c["restarts"] == 0 and c["frames_lost"] == len(late)
+    np.testing.assert_allclose(s.t - s.t[0], host - host[0], atol=1e-9)  # every time in place, none shifted
+    assert np.isnan(s.az).sum() == len(late) and np.isnan(s.az[late]).all()
+
+
+@pytest.mark.parametrize("where", [0, 1, 2500, 5999])
+def test_a_frame_without_an_angle_is_lost_not_a_crash(where):
+    """CAN's ThetaInvalid (theta NaN) crashed the stream's angle unwrapping (a traceback out of replay); such a
+    frame is not taken: counted, and a NaN sample in its place. Frame by frame and in bursts alike."""
+    for wrapped, modulus in ((True, 256), (False, 1 << 16)):
+        seq, t, az, th, host = device(6000, seed=9, modulus=modulus, wrapped=wrapped)
+        th = th.copy()
+        th[where] = math.nan
+        results = []
+        for chunk in (6000, 1):
+            stream = WheelStream(seq_modulus=modulus, time_modulus=0.65536 if wrapped else None)
+            parts = [stream.add(seq[i:i + chunk], t[i:i + chunk], az[i:i + chunk], th[i:i + chunk],
+                                host[i:i + chunk]) for i in range(0, 6000, chunk)]
+            s = WheelSamples.concatenate(parts + [stream.flush()])
+            assert stream.counters()["frames_invalid"] == 1 and np.isfinite(s.theta).all()
+            assert len(s) == 6000 - (where in (0, 5999))  # a first or last frame has no neighbour to fill it
+            results.append(s)
+        np.testing.assert_array_equal(results[0].az, results[1].az)
+        np.testing.assert_array_equal(results[0].t, results[1].t)
+
+
 def test_a_late_start_counts_the_frames_the_counter_shows_were_missed():
     seq, t, az, th, host = device(3000, seq0=2200, seed=7)  # started 2.2 s after the device
     stream = WheelStream()

@@ -16,11 +16,20 @@ from.  Each frame goes through these rules, in arrival order:
   arrival step but no lost frame), the arrival time breaking ties.  When
   none matches (within 2 frames) the device restarted: the step nearest
   the arrival step is taken.
+* **Invalid frames.**  A frame whose time or angle is not a finite number
+  (CAN's ``ThetaInvalid``: the device could not read its encoder) is not
+  taken (``frames_invalid``): the next frame finds it lost, a NaN sample
+  in its place.  A NaN ``az`` (``AzInvalid``) is taken as a NaN sample.
 * **Out-of-order frames.**  A frame whose time is not after the last
   accepted one is a duplicate or a reordering when it is less than a
   second back and (with a counter) its counter went back as many frames as
   its time did (within 2): dropped (``out_of_order``).  Otherwise, with
   absolute timestamps, the device's clock started again (a restart, below).
+  Wrapped times cannot go back, so there a frame whose counter went back
+  (by less than half its range) as many periods as its wrapped time did
+  (within 2) is the reordering (a frame sent late by a bus's arbitration
+  or a logger's buffers), dropped too: the frame it came after has already
+  counted it lost.
 * **Lost frames.**  A forward jump of the counter by ``n + 1`` means ``n``
   frames were lost (dropped, corrupted, or sent while the link was down),
   when the time step says so too.  Once the sample period is learnt, the
@@ -245,6 +254,7 @@ class WheelStream:
             "loss_events": 0,
             "samples_filled": 0,
             "out_of_order": 0,
+            "frames_invalid": 0,
             "restarts": 0,
             "time_glitches": 0,
             "frames_missed_at_start": 0,
@@ -325,6 +335,9 @@ class WheelStream:
 
     # -- the rules, one frame at a time ---------------------------------------------
     def _frame(self, seq, t, az, theta, intake, out: _Rows, judged: bool = False) -> None:
+        if not (math.isfinite(t) and math.isfinite(theta)):  # an invalid frame: as if it never came (lost)
+            self.c["frames_invalid"] += 1
+            return
         if self._suspect is not None:  # the frame after a suspected time glitch decides it
             suspect, self._suspect = self._suspect, None
             if self._follows_glitch(seq, t):
@@ -335,6 +348,9 @@ class WheelStream:
             self._suspect = (seq, t, az, theta, intake)
             return
         if self.time_modulus:
+            if self._late(seq, t):
+                self.c["out_of_order"] += 1
+                return
             t = self._unwrap_time(t, intake, seq)
         else:
             t += self._t_offset
@@ -379,6 +395,8 @@ class WheelStream:
         last_t, last_th = self._last_t, self._last_theta
         m = self.time_modulus
         if period is None or last_t is None or self._held or self._stuck or self._suspect is not None:
+            return None
+        if not (math.isfinite(traw[0]) and math.isfinite(theta[0])):  # an invalid frame: one by one
             return None
         if m:
             if self._last_intake is None or self._last_raw_t is None:
@@ -471,6 +489,17 @@ class WheelStream:
             # no step the arrival times allow agrees with the counter: a restart (see _gap), at the arrival step
             return self._last_t + nearest_step
         return self._last_t + best_step
+
+    def _late(self, seq, traw: float) -> bool:
+        """Whether a frame with a wrapped time is a reordered one: its counter went back (by less than half its
+        range) as many periods as its wrapped time did, within 2. Changes no state."""
+        if seq is None or self._period is None or self._last_raw_t is None:
+            return False
+        back = (self._last_seq - seq) % self.seq_modulus
+        if back == 0 or back >= self.seq_modulus // 2:
+            return False
+        went_back = ((self._last_raw_t - traw) % self.time_modulus) / self._period
+        return abs(went_back - back) <= _AGREE_FRAMES
 
     def _time_glitch(self, seq, traw: float) -> bool:
         """Whether a frame is a suspected time glitch: absolute times, a learnt period, its counter one step on

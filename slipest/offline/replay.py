@@ -251,7 +251,9 @@ class ReplayResult:
                 sc = w.stream_counters
                 lines.append(f"replay: wheel {wheel}: {sc.get('samples_out', 0)} samples ({sc.get('frames_lost', 0)} "
                              f"lost frames filled, {sc.get('out_of_order', 0)} out of order, "
-                             f"{sc.get('restarts', 0)} restarts, {sc.get('stuck_samples', 0)} stuck); "
+                             + (f"{sc['frames_invalid']} invalid (no angle or time), " if sc.get("frames_invalid")
+                                else "")
+                             + f"{sc.get('restarts', 0)} restarts, {sc.get('stuck_samples', 0)} stuck); "
                              + self._cycles_line(w.estimator_counters))
         else:
             (w,) = self.wheels.values()
