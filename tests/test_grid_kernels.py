@@ -179,3 +179,16 @@ def test_a_refined_soil_grid_keeps_its_ranges_and_levels_and_refuses_a_bad_facto
     for bad in (0, -1, 1.5, True, "2"):
         with pytest.raises(ValueError, match="integer >= 1"):
             g.refined(bad)
+
+
+def test_a_coordinate_too_small_for_a_float32_step_quantises_to_zeros_not_a_division_by_zero():
+    """A rover file's extra covariance of 1e300 whitened every mean to ~1e-150, whose step underflowed float32 to
+    0: a ZeroDivisionError out of a table build. The step is then 1 and the counts 0 (the values are 0 to
+    float32's precision), in the plain and the product routine alike."""
+    values = np.full((2, 3, 4), 1e-300)
+    values[1] = np.arange(12.0).reshape(3, 4)
+    counts, step = quantise(values)
+    assert step[0] == 1.0 and not counts[0].any() and step[1] == np.float32(11.0 / 32767)
+    partial = np.full((1, 2, 4), 1e-300)
+    c2, s2 = quantise_product(partial, np.ones((3, 1)), np.arange(4))
+    assert (s2 == 1.0).all() and not c2.any()

@@ -20,10 +20,13 @@ import pytest
 
 from slipest.inverse.grid import GridTables, SoilGrid, quantise
 from slipest.inverse.surrogate import load_inverse_model
-from slipest.io.log_csv import LogWriter
+from slipest.io.log_csv import LogWriter, read_log
 from slipest.model.params import StickSlipParams
 from slipest.model.scenario import Scenario
 from slipest.model.stream import simulate_stream
+from slipest.offline.calibrate import calibrate_logs
+from slipest.rover.calibrate import CalibrateOptions
+from slipest.rover import testbed
 from slipest.rover.discrepancy import Discrepancy, fit_discrepancy, slip_terms, soil_terms
 from slipest.rover.file import RoverFileError, load_rover, save_rover
 from slipest.rover.surrogate import RoverSurrogate
@@ -168,7 +171,20 @@ def test_a_rover_file_for_other_legs_or_another_version_is_refused_naming_it(tmp
                             ({"disturbance": [1, 2, 3]}, "disturbance must be an object"),
                             ({"n_legs": 4.7}, "n_legs 4.7 is not a number of legs"),
                             ({"n_legs": "4"}, "n_legs '4' is not a number of legs"),
-                            ({"n_legs": 0}, "n_legs 0 is not a number of legs")):
+                            ({"n_legs": 0}, "n_legs 0 is not a number of legs"),
+                            # each of these was a traceback or a message naming no field
+                            ({"discrepancy": [1, 2, 3]}, "discrepancy must be an object, not list"),
+                            ({"extra_cov": np.diag([1e300] * 20).tolist()}, "extra_cov holds a value"),
+                            ({"extra_cov": (-np.eye(20)).tolist()}, "extra_cov is not a covariance"),
+                            ({"base_model": {"source": 5}}, "base_model.source must name its inverse model"),
+                            ({"eq515": "x"}, "eq515 must hold the refitted Eq. 5.15 coefficients"),
+                            ({"eq515": None}, "eq515 must hold the refitted Eq. 5.15 coefficients"),
+                            ({"eq515": {**doc["eq515"], "eq515": {**doc["eq515"]["eq515"], "amu": "x"}}},
+                             r"eq515\.eq515\.amu is 'x', not a finite number"),
+                            ({"eq515": {**doc["eq515"], "eq515": {**doc["eq515"]["eq515"], "rmse_end_to_end": 0}}},
+                             "rmse_end_to_end must be > 0"),
+                            ({"eq515": {**doc["eq515"], "model": {"params": {"nL": 4, "omega": "x"}}}},
+                             "omega 'x' is not a leg speed")):
         bad = tmp_path / "bad.json"
         bad.write_text(json.dumps({**doc, **change}))
         with pytest.raises(RoverFileError, match=message):
@@ -259,6 +275,43 @@ def test_calibrate_names_a_log_without_slip(tmp_path, rover_logs):
     r = _slipest("calibrate", tb[0], path, "--no-progress", "-o", tmp_path / "r.json", check=False)
     assert r.returncode == 1 and "noslip.csv" in r.stderr and "no 'slip' column" in r.stderr, r.stderr
     assert not (tmp_path / "r.json").exists()
+
+
+def test_calibrate_refuses_slips_in_percent_or_negative_a_log_given_twice_and_mixed_imu_rates(tmp_path, rover_logs):
+    """Each wrote a rover file that made estimates worse (percent: every drive cycle flagged; negative or >= 1:
+    slip RMSE 0.11-0.13 against 0.04), held a log out against itself, or used a rate neither log had; now
+    refused before the calibration runs, naming the file."""
+    _, tb, _ = rover_logs
+    log = read_log(tb[0])
+    for name, slip, expect in (("pct.csv", log.slip * 100, "in percent"), ("neg.csv", -log.slip, "outside [0, 1)"),
+                               ("ge1.csv", log.slip + 1.0, "outside [0, 1)")):
+        with LogWriter(tmp_path / name, ("t", "az", "theta", "slip"), metadata={"nL": 4, "rate": "1000"}) as w:
+            w.write(log.t, log.az, log.theta, slip)
+        r = _slipest("calibrate", tmp_path / name, tb[1], "--no-progress", "-o", tmp_path / "r.json", check=False)
+        assert r.returncode == 1 and name in r.stderr and expect in r.stderr, r.stderr
+    r = _slipest("calibrate", tb[0], tb[0], "--no-progress", "-o", tmp_path / "r.json", check=False)
+    assert r.returncode == 1 and "is the same log as" in r.stderr, r.stderr
+    slow = _write(tmp_path / "r500.csv", replace(_scenario(5, (900.0, 0.5, 0.3), [0.1, 0.3, 0.2]), rate=500.0))
+    r = _slipest("calibrate", tb[0], slow, "--no-progress", "-o", tmp_path / "r.json", check=False)
+    assert r.returncode == 1 and "different IMU rates" in r.stderr and "500 Hz" in r.stderr, r.stderr
+    assert not (tmp_path / "r.json").exists()
+
+
+def test_a_log_at_one_slip_level_is_refused_naming_it():
+    """One slip level tells no slip from soil: Eq. 5.15's refit was degenerate (r2 -1e31) and its method then
+    ignored Da."""
+    s = simulate_stream(_scenario(7, (900.0, 0.5, 0.3), [0.2] * 10))
+    with pytest.raises(ValueError, match=r"flat\.csv: the reference slip spans only 0 .*several slip levels"):
+        testbed.TestbedLog.from_samples("flat.csv", s.t, s.az, s.theta, s.slip)
+
+
+def test_one_log_of_three_slip_levels_does_not_use_its_unvalidated_testbed_correction(tmp_path):
+    """With fewer than 4 levels the held-out cycles share their levels with the fit (a degree-2 correction through
+    3 levels fits them exactly): it was used, and a drive's coverage fell from 100 % to 50 %."""
+    path = _write(tmp_path / "lev3.csv", _scenario(8, (900.0, 0.45, 0.3), np.repeat([0.1, 0.2, 0.3], 4)))
+    cal = calibrate_logs([path], CalibrateOptions(diagnose=False, batch=100))
+    tb = cal.report["correction"]["testbed"]
+    assert tb["used"] is False and "not validated" in tb["how"], tb
 
 
 @pytest.fixture(scope="module")

@@ -50,9 +50,11 @@ class Eq515Inverse(SlipInverse):
 
     def __init__(self, amu: float, bmu: float, cI: float, cmu: float, cK: float, slip_std: float):
         vals = dict(amu=amu, bmu=bmu, cI=cI, cmu=cmu, cK=cK, slip_std=slip_std)
-        bad = [k for k, v in vals.items() if not math.isfinite(v)]
+        bad = [k for k, v in vals.items()
+               if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)]
         if bad:
-            raise ValueError(f"Eq. 5.15 coefficient(s) not finite: {bad}")
+            raise ValueError(f"Eq. 5.15 coefficient(s) not finite numbers: {', '.join(bad)} (a calibration whose "
+                             "Eq. 5.15 could not be fitted: use the default method)")
         if not slip_std > 0:
             raise ValueError(f"slip_std={slip_std} must be > 0")
         self.amu, self.bmu, self.cI, self.cmu, self.cK = (float(v) for v in (amu, bmu, cI, cmu, cK))

@@ -73,9 +73,11 @@ def whiten_into(row, cols, whitener, fw):
 @numba.njit(cache=True, inline="always")
 def quantise_step(top, limit):
     """The float32 step of a coordinate whose largest ``|value|`` is ``top``: ``min(top, limit) / 32767``, 1
-    for a coordinate of zeros (the rule of :func:`slipest.inverse.grid.quantise`)."""
+    for a coordinate of zeros or of values so small the step underflows float32 (their counts are then 0;
+    the rule of :func:`slipest.inverse.grid.quantise`)."""
     t = min(top, limit)
-    return np.float32(t / 32767.0 if t > 0.0 else 1.0)
+    s = np.float32(t / 32767.0 if t > 0.0 else 1.0)
+    return s if s > 0.0 else np.float32(1.0)
 
 
 @numba.njit(cache=True, inline="always")

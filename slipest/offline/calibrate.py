@@ -8,12 +8,17 @@ disagree are refused, as ``slipest diagnose`` does) and runs
 result (:func:`slipest.rover.file.save_rover`).
 
 Errors name the file: :class:`~slipest.io.log_csv.LogFormatError` (a
-malformed log, no ``slip`` column), ``OSError`` (cannot read it),
-``ValueError`` (too few usable cycles, logs that disagree on the hardware,
-an unknown effect).
+malformed log, no ``slip`` column, a slip outside ``[0, 1)``: in percent,
+say), ``OSError`` (cannot read it), ``ValueError`` (too few usable cycles,
+one slip level in a log, the same log given twice, logs of different IMU
+rates or that disagree on the hardware, an unknown effect).
 """
 
 from __future__ import annotations
+
+import hashlib
+
+import numpy as np
 
 from slipest.io.log_csv import LogFormatError, read_log
 from slipest.offline.diagnose import DiagnoseOptions, geometry_of
@@ -39,7 +44,10 @@ def calibrate_logs(paths, options=None, *, legs: int | None = None, MH: float | 
         if log.slip is None:
             raise LogFormatError("no 'slip' column: calibration needs the slip of every leg cycle (a testbed's "
                                  "reference, visual odometry)", p)
+        _check_slip(log, p)
         logs.append(log)
+    _check_distinct(paths)
+    _check_rates(logs, paths)
     diag = DiagnoseOptions(effects=options.effects, legs=legs, MH=MH, mF=mF, lS=lS)
     diag.checked_effects()
     geometry = geometry_of(diag, [log.metadata for log in logs])
@@ -50,6 +58,54 @@ def calibrate_logs(paths, options=None, *, legs: int | None = None, MH: float | 
 
         base = load_inverse_model(model)
     return calibrate(runs, geometry, options, progress=progress, base=base)
+
+
+#: Logs whose IMU rates differ by more than this fraction are not one rover's IMU setting.
+RATE_TOLERANCE = 0.02
+
+
+def _check_slip(log, path: str) -> None:
+    """LogFormatError unless every finite reference slip lies in ``[0, 1)`` (a fraction, as the model's)."""
+    slip = np.asarray(log.slip, dtype=float)
+    finite = np.isfinite(slip)
+    bad = finite & ((slip < 0.0) | (slip >= 1.0))
+    if not bad.any():
+        return
+    i = int(np.argmax(bad))
+    lo, hi = float(slip[finite].min()), float(slip[finite].max())
+    hint = " (in percent? slipest wants a fraction, 0.25 for 25 %)" if lo >= 0.0 and 1.5 < hi <= 100.0 else ""
+    raise LogFormatError(f"slip {slip[i]:g} at t = {float(log.t[i]):.3f} s is outside [0, 1){hint}; "
+                         f"{int(bad.sum())} sample(s) so, the column spans {lo:g} to {hi:g}", path)
+
+
+def _check_distinct(paths) -> None:
+    """ValueError when two of the logs are the same file or the same bytes (its held-out check would then test
+    a log on itself)."""
+    seen: dict = {}
+    for p in paths:
+        h = hashlib.sha256()
+        with open(p, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+        digest = h.hexdigest()
+        if digest in seen:
+            raise ValueError(f"{p} is the same log as {seen[digest]}: give each testbed run once (a run given twice "
+                             "would be held out against itself)")
+        seen[digest] = p
+
+
+def _check_rates(logs, paths) -> None:
+    """ValueError when the logs' IMU rates (median time step) differ by more than :data:`RATE_TOLERANCE`."""
+    rates = []
+    for log in logs:
+        dt = np.diff(np.asarray(log.t, dtype=float))
+        dt = dt[np.isfinite(dt) & (dt > 0)]
+        rates.append(1.0 / float(np.median(dt)) if dt.size else float("nan"))
+    finite = [r for r in rates if np.isfinite(r)]
+    if finite and max(finite) > (1.0 + RATE_TOLERANCE) * min(finite):
+        listed = ", ".join(f"{p}: {r:.4g} Hz" for p, r in zip(paths, rates))
+        raise ValueError(f"the logs were sampled at different IMU rates ({listed}): a rover file is for one IMU "
+                         "setting; calibrate the logs of each rate on their own")
 
 
 def write_rover(calibration, path, created_by: str, model: str | None = None):

@@ -139,6 +139,7 @@ def load_rover(path, n_legs: int | None = None, base=None) -> RoverSurrogate:
     if n_legs is not None and legs != int(n_legs):
         raise RoverFileError(f"{source} was made for a {legs}-leg wheel-leg, not {n_legs} legs: calibrate this "
                              "rover's own testbed logs (slipest calibrate --legs N)")
+    _check_sections(doc, source)
     if base is None:
         base = _base_model(doc["base_model"], source)
     try:
@@ -147,11 +148,59 @@ def load_rover(path, n_legs: int | None = None, base=None) -> RoverSurrogate:
                                   eq515=doc["eq515"], source=source, disturbance=doc.get("disturbance"),
                                   interval_scale=float(doc.get("interval_scale", 1.0)),
                                   angle_offset=float(doc.get("angle_offset", 0.0)))
-    except (KeyError, TypeError, ValueError) as exc:
-        raise RoverFileError(f"{source}: malformed rover model ({exc})") from None
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise RoverFileError(f"{source}: malformed rover model ({type(exc).__name__}: {exc})") from None
     if base.n_legs != legs:
         raise RoverFileError(f"{source}: the inverse model is for {base.n_legs} legs, the rover file for {legs}")
     return model
+
+
+#: Eq. 5.15's coefficients a rover file's ``eq515`` section holds (slipest.inverse.eq515.Eq515Inverse).
+EQ515_KEYS = ("amu", "bmu", "cI", "cmu", "cK", "rmse_end_to_end")
+#: Largest magnitude of an ``extra_cov`` entry (features' units squared): far above any feature's scatter.
+EXTRA_COV_LIMIT = 1e10
+
+
+def _number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x)
+
+
+def _check_sections(doc: dict, source: str) -> None:
+    """RoverFileError naming the field when a section has the wrong type or a value that cannot be used."""
+    if not isinstance(doc["discrepancy"], dict):
+        raise RoverFileError(f"{source}: discrepancy must be an object, not {type(doc['discrepancy']).__name__}")
+    cov = doc["extra_cov"]
+    try:
+        arr = np.asarray(cov, dtype=float)
+    except (TypeError, ValueError):
+        raise RoverFileError(f"{source}: extra_cov must be a square matrix of numbers") from None
+    if arr.ndim != 2 or arr.shape[0] != arr.shape[1]:
+        raise RoverFileError(f"{source}: extra_cov must be a square matrix of numbers, not of shape {arr.shape}")
+    if not np.isfinite(arr).all() or np.abs(arr).max(initial=0.0) > EXTRA_COV_LIMIT:
+        raise RoverFileError(f"{source}: extra_cov holds a value that is not a finite number below "
+                             f"{EXTRA_COV_LIMIT:g}")
+    if (np.diag(arr) < 0).any() or not np.allclose(arr, arr.T, rtol=1e-6, atol=1e-12):
+        raise RoverFileError(f"{source}: extra_cov is not a covariance (symmetric, non-negative diagonal)")
+    eq = doc["eq515"]
+    coef = eq.get("eq515") if isinstance(eq, dict) else None
+    if not isinstance(coef, dict):
+        raise RoverFileError(f"{source}: eq515 must hold the refitted Eq. 5.15 coefficients "
+                             f"({{\"eq515\": {{{', '.join(EQ515_KEYS)}}}, ...}}); re-run slipest calibrate")
+    bad = [k for k in EQ515_KEYS if k not in coef or not (coef[k] is None or _number(coef[k]))]
+    if bad:
+        raise RoverFileError(f"{source}: eq515.eq515.{bad[0]} is {coef.get(bad[0], 'missing')!r}, not a finite "
+                             "number (or null: not fitted)")
+    if coef["rmse_end_to_end"] is not None and not coef["rmse_end_to_end"] > 0:
+        raise RoverFileError(f"{source}: eq515.eq515.rmse_end_to_end must be > 0 (the interval's width)")
+    params = eq.get("model", {})
+    params = params.get("params", {}) if isinstance(params, dict) else None
+    if not isinstance(params, dict):
+        raise RoverFileError(f"{source}: eq515.model.params must be an object")
+    if "nL" in params and not (isinstance(params["nL"], int) and not isinstance(params["nL"], bool)
+                               and params["nL"] >= 1):
+        raise RoverFileError(f"{source}: eq515.model.params.nL {params['nL']!r} is not a number of legs")
+    if "omega" in params and not (_number(params["omega"]) and params["omega"] > 0):
+        raise RoverFileError(f"{source}: eq515.model.params.omega {params['omega']!r} is not a leg speed [rad/s]")
 
 
 def model_from_files(model=None, rover=None, n_legs: int | None = None):
@@ -173,8 +222,8 @@ def model_from_files(model=None, rover=None, n_legs: int | None = None):
 def _base_model(info, source: str):
     from slipest.inverse.surrogate import InverseModelError, load_inverse_model
 
-    if not isinstance(info, dict) or "source" not in info:
-        raise RoverFileError(f"{source}: base_model must name its inverse model")
+    if not isinstance(info, dict) or not isinstance(info.get("source"), str):
+        raise RoverFileError(f"{source}: base_model.source must name its inverse model (\"shipped\" or a file)")
     where = None if info["source"] == "shipped" else info["source"]
     try:
         model = load_inverse_model(where)

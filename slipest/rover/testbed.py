@@ -18,6 +18,12 @@ import numpy as np
 
 from slipest.features import INDEX
 
+#: Slip levels a single log needs for a held-out check of whole levels (fewer: held-out cycles share their levels
+#: with the fit, which then tests nothing).
+MIN_HELDOUT_LEVELS = 4
+#: Least range of reference slips [-] over a log's estimated cycles: one slip level tells no slip from soil.
+MIN_SLIP_RANGE = 0.05
+
 
 def cycle_rows(t, az, theta, slip=None, n_legs: int = 4, model=None) -> dict:
     """The cycles of a stream that reached the estimator: ``cycle`` ``(n,)`` indices, ``features`` ``(n, F)``,
@@ -49,7 +55,7 @@ def cycle_rows(t, az, theta, slip=None, n_legs: int = 4, model=None) -> dict:
             "features": np.array([r[1] for r in rows]).reshape(-1, n_feat),
             "slip_ref": np.array([r[2] for r in rows], dtype=float),
             "slip": np.array([r[3] for r in rows], dtype=float),
-            "slip_std": np.array([r[4] for r in rows], dtype=float), "flagged": flagged}
+            "slip_std": np.array([r[4] for r in rows], dtype=float), "flagged": flagged, "hints": dict(est.hints)}
 
 
 @dataclass
@@ -72,8 +78,9 @@ class TestbedLog:
 
     @classmethod
     def from_samples(cls, name: str, t, az, theta, slip, n_legs: int = 4, model=None) -> "TestbedLog":
-        """The log's cycles with a reference slip (ValueError naming the log when fewer than 8 remain);
-        ``model``: the estimator's (a rover model's sample correction applies)."""
+        """The log's cycles with a reference slip (ValueError naming the log when fewer than 8 remain, or when
+        their reference slips span less than :data:`MIN_SLIP_RANGE`); ``model``: the estimator's (a rover
+        model's sample correction applies)."""
         r = cycle_rows(t, az, theta, slip, n_legs, model)
         keep = np.isfinite(r["slip_ref"])
         n_all = len(r["cycle"]) + sum(r["flagged"].values())
@@ -83,8 +90,16 @@ class TestbedLog:
         log = cls(name, r["features"][keep], r["slip_ref"][keep], r["cycle"][keep], r["flagged"], n_all, rate)
         if len(log) < 8:
             why = ", ".join(f"{k} {v}" for k, v in sorted(r["flagged"].items())) or "none flagged"
+            hint = r["hints"].get("units") or r["hints"].get("degrees")
             raise ValueError(f"{name}: only {len(log)} estimated leg cycle(s) with a reference slip (of {n_all}; "
-                             f"not estimated: {why}); calibration needs at least 8 per log")
+                             f"not estimated: {why}); calibration needs at least 8 per log"
+                             + (f"; {hint}" if hint else ""))
+        spread = float(np.ptp(log.slip))
+        if spread < MIN_SLIP_RANGE:
+            raise ValueError(f"{name}: the reference slip spans only {spread:.3g} over its {len(log)} estimated "
+                             f"cycles (around {float(np.median(log.slip)):.3g}); calibration needs several slip "
+                             f"levels in each log (at least {MIN_SLIP_RANGE:g} apart; a testbed run at 8 levels, say) "
+                             "to tell the slip from the soil")
         return log
 
     def __len__(self) -> int:
@@ -113,7 +128,7 @@ class TestbedLog:
         """Cycles whose slip level is held out: every ``every``-th interior level (2nd, 5th, ...) when the log
         has at least 4 levels, else every ``every``-th cycle. Boolean ``(n,)``."""
         lev = self.levels()
-        if lev.size >= 4:
+        if lev.size >= MIN_HELDOUT_LEVELS:
             out = lev[1:-1][::every]
             return np.isin(np.round(self.slip, 4), out)
         return np.arange(len(self)) % every == 1
@@ -129,4 +144,4 @@ def finite_rows(features, columns) -> np.ndarray:
     return np.all(np.isfinite(np.asarray(features)[:, columns]), axis=1)
 
 
-__all__ = ["TestbedLog", "cycle_rows", "finite_rows"]
+__all__ = ["MIN_HELDOUT_LEVELS", "MIN_SLIP_RANGE", "TestbedLog", "cycle_rows", "finite_rows"]
