@@ -120,3 +120,248 @@ def test_simulate_a_value_of_the_wrong_type_names_the_file_segment_and_key(tmp_p
     with pytest.raises(SystemExit) as exc:
         main(["simulate", "--scenario", str(scenario)])
     assert "bad.toml" in str(exc.value) and where in str(exc.value), str(exc.value)
+
+
+# --- defects found by QA (s23): each of these failed before the fix ---------------------------------------------
+
+def _good_log(tmp_path, name="run.csv"):
+    """A simulated log made a moment ago at ``name``: what a failed or interrupted run must leave untouched."""
+    out = tmp_path / name
+    assert main(["simulate", "--cycles", "1", "--rate", "200", "-o", str(out)]) == 0
+    return out, out.read_bytes()
+
+
+def _no_partial_files(tmp_path):
+    """No temporary log left in the directory (the simulation writes into one beside -o)."""
+    return [p.name for p in tmp_path.iterdir() if p.name.endswith(".part")] == []
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--kappa", "nan"], "kappa=nan must be a finite number"),
+    (["--kappa", "inf"], "kappa=inf must be a finite number"),
+    (["--kS", "nan"], "kS=nan must be a finite number"),
+    (["--noise", "nan"], "noise=nan"),
+])
+def test_simulate_refuses_non_finite_options_and_names_them(tmp_path, argv, message):
+    out, before = _good_log(tmp_path)
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate", *argv, "--cycles", "1", "-o", str(out)])
+    assert message in str(exc.value)
+    assert out.read_bytes() == before
+
+
+@pytest.mark.parametrize("model, where", [
+    ("viscous = nan", "[model]: viscous = nan must be a finite number"),
+    ("stribeck_vs = 0.01\nstribeck_exp = nan", "[model]: stribeck_exp = nan must be a finite number"),
+    ("ripple_amp = 0.1\nripple_phase = nan", "[model]: ripple_phase = nan must be a finite number"),
+    ("kappa = inf", "[model]: kappa = inf must be a finite number"),
+    ("nL = inf", "[model]: nL = inf must be a finite number"),
+    ("n_hc = -1.0", "[model]: invalid stick-slip parameters: n_hc=-1.0 must be >= 0"),
+    ("stribeck_exp = 0.0", "[model]: invalid stick-slip parameters: stribeck_exp=0.0 must be a positive"),
+])
+def test_simulate_scenario_non_finite_or_out_of_range_model_parameter_names_file_and_key(tmp_path, model, where):
+    scenario = tmp_path / "bad.toml"
+    scenario.write_text(f"[model]\n{model}\n[[segment]]\ncycles = 2\n")
+    out = tmp_path / "run.csv"
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate", "--scenario", str(scenario), "-o", str(out)])
+    assert "bad.toml" in str(exc.value) and where in str(exc.value), str(exc.value)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("effects, message", [
+    ('[[effect]]\nname = "imu_lowpass"\ncutoff = -5', "[[effect]] 1: imu_lowpass: cutoff=-5 Hz is outside"),
+    ('[[effect]]\nname = "angle_offset"\noffset = 0.1\n[[effect]]\nname = "angle_offset"\noffset = 0.2',
+     "named more than once: angle_offset"),
+    ('[[effect]]\nname = "imu_lowpass"\ncutoff = "abc"', "[[effect]] 1: imu_lowpass: cutoff='abc' is not a number"),
+    ("[[effect]]\nname = 5", "[[effect]] 1: unknown effect 5"),
+    ('[[effect]]\nname = "imu_lowpass"\n[[effect]]\nname = "imu_lowpas"', "[[effect]] 2: unknown effect 'imu_lowpas'"),
+])
+def test_simulate_bad_scenario_effect_is_one_clear_line_and_leaves_the_log(tmp_path, capsys, effects, message):
+    out, before = _good_log(tmp_path)
+    scenario = tmp_path / "bad.toml"
+    scenario.write_text(f"[[segment]]\ncycles = 2\n{effects}\n")
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate", "--scenario", str(scenario), "-o", str(out)])
+    assert "bad.toml" in str(exc.value) and message in str(exc.value), str(exc.value)
+    assert out.read_bytes() == before  # checked when the scenario is loaded: -o never opened
+    assert "Traceback" not in capsys.readouterr().err
+
+
+def test_simulate_same_effect_twice_on_the_command_line_is_refused_before_writing(tmp_path):
+    out, before = _good_log(tmp_path)
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate", "--cycles", "1", "--effect", "imu_lowpass", "--effect", "imu_lowpass:cutoff=20",
+              "-o", str(out)])
+    assert "named more than once: imu_lowpass" in str(exc.value)
+    assert out.read_bytes() == before
+
+
+def test_simulate_interrupted_leaves_the_previous_log_and_no_partial_file(tmp_path, monkeypatch, capsys):
+    import slipest.model.stream as stream
+
+    out, before = _good_log(tmp_path)
+    real = stream.iter_stream
+
+    def interrupted(scenario, *args, **kwargs):
+        chunks = real(scenario, 1)
+        yield next(chunks)  # some of the log is written, then Ctrl-C
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(stream, "iter_stream", interrupted)
+    assert main(["simulate", "--cycles", "5", "--rate", "200", "-o", str(out)]) == 130
+    assert out.read_bytes() == before
+    assert _no_partial_files(tmp_path)
+    err = capsys.readouterr().err
+    assert "interrupted: nothing written" in err and "left as it was" in err
+    # no previous file: none is made
+    fresh = tmp_path / "fresh.csv"
+    assert main(["simulate", "--cycles", "5", "--rate", "200", "-o", str(fresh)]) == 130
+    assert not fresh.exists() and _no_partial_files(tmp_path)
+    assert f"no {fresh} made" in capsys.readouterr().err
+
+
+def test_simulate_model_failure_leaves_the_previous_log(tmp_path):
+    out, before = _good_log(tmp_path)
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate", "--kappa", "0", "--cycles", "1", "-o", str(out)])
+    assert "ill-posed" in str(exc.value) and "nothing written" in str(exc.value)
+    assert out.read_bytes() == before and _no_partial_files(tmp_path)
+
+
+def test_simulate_sigterm_stops_the_run_and_writes_nothing(tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out, before = _good_log(tmp_path)
+    proc = subprocess.Popen([sys.executable, "-m", "slipest", "simulate", "--cycles", "100000", "-o", str(out)],
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not any(p.name.endswith(".part") and p.stat().st_size > 100_000 for p in tmp_path.iterdir()):
+            assert proc.poll() is None and time.monotonic() < deadline, "the run never started writing"
+            time.sleep(0.1)
+        proc.send_signal(signal.SIGTERM)
+        err = proc.communicate(timeout=60)[1]
+    finally:
+        if proc.poll() is None:
+            os.kill(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 130, err
+    assert "interrupted: nothing written" in err
+    assert out.read_bytes() == before and _no_partial_files(tmp_path)
+
+
+def test_simulate_replaces_a_simulated_log_whole_and_keeps_the_overwrite_rule(tmp_path):
+    import os
+
+    out, before = _good_log(tmp_path)
+    os.chmod(out, 0o640)
+    assert main(["simulate", "--cycles", "2", "--rate", "200", "-o", str(out)]) == 0
+    log = read_log(out)
+    assert log.metadata["cycles"] == "2" and out.read_bytes() != before
+    assert os.stat(out).st_mode & 0o777 == 0o640  # the file replaced keeps its permissions
+    recorded = tmp_path / "recorded.csv"
+    recorded.write_text("t,az,theta\n0,9.81,0\n")
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate", "--cycles", "1", "-o", str(recorded)])
+    assert "not a simulated log" in str(exc.value) and recorded.read_text() == "t,az,theta\n0,9.81,0\n"
+    assert main(["simulate", "--cycles", "1", "--rate", "200", "--overwrite", "-o", str(recorded)]) == 0
+    assert read_log(recorded).metadata["source"] == "slipest simulate"
+    assert _no_partial_files(tmp_path)
+
+
+def test_simulate_to_a_device_writes_into_it_and_does_not_replace_it():
+    import os
+    import stat
+
+    assert main(["simulate", "--cycles", "1", "--rate", "200", "--overwrite", "-o", os.devnull]) == 0
+    assert stat.S_ISCHR(os.stat(os.devnull).st_mode)
+
+
+def test_simulate_header_records_every_model_parameter_the_scenario_changes(tmp_path):
+    scenario = tmp_path / "mars.toml"
+    scenario.write_text("[model]\ng = 3.71\nb_hc = 40.0\nstribeck_vs = 0.01\nripple_amp = 0.2\n"
+                        "[imu]\nrate = 200.0\n[[segment]]\ncycles = 2\nslip = 0.3\n")
+    out = tmp_path / "run.csv"
+    assert main(["simulate", "--scenario", str(scenario), "-o", str(out)]) == 0
+    meta = read_log(out).metadata
+    assert (meta["g"], meta["b_hc"], meta["stribeck_vs"], meta["ripple_amp"]) == ("3.71", "40", "0.01", "0.2")
+    for name in ("n_hc", "stribeck_exp", "viscous", "ripple_phase", "ripple_harmonic"):
+        assert name not in meta  # at their defaults
+    default = tmp_path / "default.csv"
+    assert main(["simulate", "--cycles", "1", "--rate", "200", "-o", str(default)]) == 0
+    assert "g" not in read_log(default).metadata and "b_hc" not in read_log(default).metadata
+
+
+@pytest.mark.parametrize("argv, doc, message", [
+    (["--seed", "-1"], None, "--seed=-1: the seed must be a non-negative integer"),
+    ([], "[imu]\nseed = -5\n[[segment]]\ncycles = 2\n", "[imu]: seed = -5 must be a non-negative integer"),
+])
+def test_simulate_refuses_a_negative_seed(tmp_path, capsys, argv, doc, message):
+    out, before = _good_log(tmp_path)
+    if doc is not None:
+        scenario = tmp_path / "seed.toml"
+        scenario.write_text(doc)
+        argv = ["--scenario", str(scenario)]
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate", "--cycles", "2", *argv, "-o", str(out)])
+    assert message in str(exc.value)
+    assert out.read_bytes() == before and "Traceback" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, doc", [
+    (["--omega", "0.001", "--cycles", "1"], None),
+    ([], "[[segment]]\ncycles = 1\n[[segment]]\ncycles = 1\nomega = 0.001\n"),
+])
+def test_simulate_refuses_a_leg_so_slow_one_cycle_would_take_gigabytes(tmp_path, argv, doc):
+    out = tmp_path / "run.csv"
+    if doc is not None:
+        scenario = tmp_path / "slow.toml"
+        scenario.write_text(doc)
+        argv = ["--scenario", str(scenario)]
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate", *argv, "-o", str(out)])
+    text = str(exc.value)
+    assert "omega=0.001 rad/s lasts 1571 s" in text and "give a leg speed omega >= 0.0027 rad/s" in text, text
+    if doc is not None:
+        assert "slow.toml" in text and "leg cycle 2 " in text
+    assert not out.exists()
+
+
+def test_simulate_help_states_the_leg_speed_floor(capsys):
+    with pytest.raises(SystemExit):
+        main(["simulate", "--help"])
+    assert "omega >= 0.0027" in " ".join(capsys.readouterr().out.split())
+
+
+@pytest.mark.parametrize("doc, message", [
+    ("[segment]\ncycles = 2\n", "[segment] is a single table: write [[segment]]"),
+    ('[[segment]]\ncycles = 2\n[effect]\nname = "imu_lowpass"\n', "[effect] is a single table: write [[effect]]"),
+    ("model = [1, 2]\n[[segment]]\ncycles = 2\n", "model = [1, 2] is an array: [model] must be a table"),
+    ("imu = 5\n[[segment]]\ncycles = 2\n", "imu = 5 is a number: [imu] must be a table"),
+    ("segment = [1, 2]\n", "segment 1 is a number, not a table"),
+    ('effect = "imu_lowpass"\n[[segment]]\ncycles = 2\n', "effect must be an array of tables"),
+    ("[[segment]]\ncycles = true\n", "segment 1: cycles = true is a boolean: cycles must be a positive integer"),
+    ("[[segment]]\ncycles = 2\nslip = [0.1, true]\n", "segment 1: slip = true is a boolean: it must be a number"),
+    ("[model]\nkappa = true\n[[segment]]\ncycles = 2\n", "[model]: kappa = true is a boolean: it must be a number"),
+])
+def test_simulate_a_section_of_the_wrong_shape_names_file_key_and_expected_shape(tmp_path, capsys, doc, message):
+    scenario = tmp_path / "shape.toml"
+    scenario.write_text(doc)
+    out = tmp_path / "run.csv"
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate", "--scenario", str(scenario), "--effect", "angle_offset", "--rate", "500", "-o", str(out)])
+    assert "shape.toml" in str(exc.value) and message in str(exc.value), str(exc.value)
+    assert not out.exists() and "Traceback" not in capsys.readouterr().err
+
+
+def test_simulate_rate_above_the_model_step_suggests_dt(tmp_path):
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate", "--rate", "20000", "--cycles", "1", "-o", str(tmp_path / "run.csv")])
+    assert "coarser than the IMU period" in str(exc.value) and "--dt" in str(exc.value)
+    out = tmp_path / "fine.csv"
+    assert main(["simulate", "--rate", "20000", "--dt", "5e-5", "--cycles", "1", "-o", str(out)]) == 0

@@ -5,10 +5,10 @@ import math
 import numpy as np
 import pytest
 
-from slipest.model.params import StickSlipParams
+from slipest.model.params import PARAM_NAMES, StickSlipParams
 from slipest.model.scenario import Scenario
 from slipest.model.stance import simulate_stance
-from slipest.model.stream import iter_stream, simulate_stream
+from slipest.model.stream import MAX_CHUNK_SECONDS, SampleChunk, iter_stream, simulate_stream
 from slipest.units import G
 
 
@@ -115,3 +115,77 @@ def test_drive_speed_ripple_keeps_theta_continuous_and_cycle_aligned():
     assert set(np.unique(k)) == {0, 1, 2}
     steps = np.diff(s.theta)
     assert steps.max() / steps.min() == pytest.approx(1.2 / 0.8, rel=0.02)
+
+
+# --- defects found by QA (s23): each of these failed before the fix ---------------------------------------------
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+@pytest.mark.parametrize("name", PARAM_NAMES)
+def test_every_model_parameter_must_be_finite_and_the_error_names_it(name, bad):
+    with pytest.raises(ValueError, match=rf"\b{name}={bad} must be a finite number"):
+        StickSlipParams(**{name: bad})
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"n_hc": -0.5}, "n_hc=-0.5 must be >= 0"),
+    ({"stribeck_exp": 0.0}, "stribeck_exp=0.0 must be a positive"),
+    ({"b_hc": -1.0}, "b_hc=-1.0 must be >= 0"),
+    ({"viscous": -1.0}, "viscous=-1.0 must be >= 0"),
+])
+def test_extension_parameters_are_range_checked_by_name(changes, message):
+    with pytest.raises(ValueError, match=message):
+        StickSlipParams(**changes)
+
+
+def test_chunks_cover_at_most_max_chunk_seconds_and_do_not_change_the_samples():
+    # a slow leg: 7.85 s cycles, so 32 cycles would be 250 s of model grid in one chunk
+    sc = Scenario.constant(12, StickSlipParams(omega=0.2), rate=200.0, noise_g=0.02, seed=3,
+                           effects=({"name": "imu_lowpass", "cutoff": 20.0},))
+    period = 2 * math.pi / (4 * 0.2)
+    chunks = list(iter_stream(sc))
+    assert len(chunks) > 1
+    for c in chunks:
+        n_cycles = len(np.unique(c.cycle))
+        assert 1 <= n_cycles and n_cycles * period <= MAX_CHUNK_SECONDS + 1e-9
+    one_by_one = SampleChunk.concatenate(iter_stream(sc, chunk_cycles=1))
+    whole = SampleChunk.concatenate(chunks)
+    for f in ("t", "az", "theta", "slip", "cycle"):
+        np.testing.assert_array_equal(getattr(whole, f), getattr(one_by_one, f))
+    # one cycle longer than the bound is still one whole chunk
+    long = Scenario.constant(2, StickSlipParams(omega=0.015), rate=10.0)  # 105 s cycles
+    assert [len(np.unique(c.cycle)) for c in iter_stream(long)] == [1, 1]
+
+
+def test_scenario_refuses_a_negative_seed_and_bad_effects_when_built():
+    with pytest.raises(ValueError, match="seed=-1 must be a non-negative integer"):
+        Scenario.constant(1, seed=-1)
+    with pytest.raises(ValueError, match=r"\[imu\]: seed = -5 must be a non-negative integer"):
+        Scenario.from_dict({"imu": {"seed": -5}, "segment": [{"cycles": 1}]})
+    with pytest.raises(ValueError, match="effect 1: imu_lowpass: cutoff=-5 Hz is outside"):
+        Scenario.constant(1, effects=({"name": "imu_lowpass", "cutoff": -5},))
+    with pytest.raises(ValueError, match="named more than once: angle_offset"):
+        Scenario.constant(1, effects=({"name": "angle_offset"}, {"name": "angle_offset", "offset": 0.1}))
+    with pytest.raises(ValueError, match="--dt"):
+        Scenario.constant(1, rate=20000.0)
+
+
+@pytest.mark.parametrize("doc, message", [
+    ({"segment": {"cycles": 2}}, r"\[segment\] is a single table: write \[\[segment\]\]"),
+    ({"segment": [{"cycles": 2}], "effect": {"name": "imu_lowpass"}}, r"\[effect\] is a single table"),
+    ({"model": [1, 2], "segment": [{"cycles": 2}]}, r"model = \[1, 2\] is an array: \[model\] must be a table"),
+    ({"segment": [1, 2]}, "segment 1 is a number, not a table"),
+    ({"segment": [{"cycles": True}]}, "cycles = true is a boolean"),
+    ({"segment": [{"cycles": 1, "omega": float("nan")}]}, "segment 1: omega = nan must be a finite number"),
+])
+def test_scenario_shape_errors_name_the_section_and_the_shape(doc, message):
+    with pytest.raises(ValueError, match=message):
+        Scenario.from_dict(doc)
+
+
+def test_metadata_lists_every_model_parameter_that_is_not_the_default():
+    p = StickSlipParams(g=3.71, b_hc=40.0, stribeck_vs=0.01, ripple_amp=0.2)
+    meta = Scenario.per_cycle(base=p, slip=[0.1, 0.2], n_hc=[1.0, 1.5]).metadata()
+    assert (meta["g"], meta["b_hc"], meta["stribeck_vs"], meta["ripple_amp"]) == ("3.71", "40", "0.01", "0.2")
+    assert meta["n_hc"] == "varies" and meta["slip"] == "varies"
+    assert "viscous" not in meta and "ripple_phase" not in meta
+    assert not {"g", "b_hc", "n_hc"} & set(Scenario.constant(1).metadata())

@@ -4,14 +4,29 @@ Simulate leg cycles of a wheel-leg with the stick-slip model and write the
 IMU/encoder stream as a log CSV (the format `slipest replay` reads). Either
 give one slip, soil and leg speed with the options, or a TOML scenario with
 segments of different slip, soil and leg speed.
+
+The log's header records the scenario: the IMU settings and every model
+parameter the run sets (those left at their default are not listed). A
+file (-o) is written whole or not at all: the run goes to a temporary file
+beside it, which replaces the file only once the last cycle is written; on
+an error or an interruption (Ctrl-C, SIGTERM) the previous file is left as
+it was. A leg cycle is simulated at once, so a cycle may last at most
+6,000,000 model steps (10 minutes at the default dt=1e-4 s).
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
+import signal
+import stat
 import sys
+import tempfile
+import threading
 import tomllib
+
+import numpy as np
 
 from slipest.cli.command import add_command, leg_count
 from slipest.cli.output_paths import output_problem
@@ -22,14 +37,19 @@ from slipest.model.scenario import Scenario
 def add_parser(sub) -> None:
     p = add_command(sub, "simulate", "write a simulated log (t, az, theta, slip) from the stick-slip model", __doc__)
     add_scenario_arguments(p)
-    p.add_argument("-o", "--output", default="-", help="output CSV file ('-' or omitted: stdout); a simulated log "
-                   "there is replaced, any other file only with --overwrite")
+    p.add_argument("-o", "--output", default="-", help="output CSV file ('-' or omitted: stdout, streamed), "
+                   "written whole or not at all; a simulated log there is replaced, any other file only with "
+                   "--overwrite")
     p.add_argument("--overwrite", action="store_true", help="replace -o whatever it holds")
     p.set_defaults(func=run)
 
 
 #: The ``source`` metadata of a simulated log: what ``-o`` may replace without ``--overwrite``.
 SOURCE = "slipest simulate"
+
+#: Most model steps one leg cycle may take: a cycle is simulated whole, at about 80 bytes of memory per step
+#: (6e6 steps: 10 minutes at the default dt=1e-4 s, about 0.5 GB).
+MAX_CYCLE_STEPS = 6_000_000
 
 
 def _simulated(path: str) -> bool:
@@ -57,12 +77,14 @@ def add_scenario_arguments(
     g.add_argument("--kappa", type=float, default=0.3, help="lateral leg stiffness ratio (default 0.3; 0 = literal thesis)")
     g.add_argument("--legs", type=leg_count, default=4, help="number of legs of the wheel-leg (default 4)")
     g.add_argument("--omega", type=float, default=None,
-                   help="leg speed [rad/s] (default 0.63; a scenario file sets it per segment)")
+                   help="leg speed [rad/s] (default 0.63; a scenario file sets it per segment); a leg cycle may "
+                   "last at most 6e6 model steps (10 min at the default dt: omega >= 0.0027 with 4 legs)")
     g.add_argument("--cycles", type=int, default=10, help="number of leg cycles (default 10)")
     g.add_argument("--rate", type=float, default=None, help="IMU sample rate [Hz] (default 1000)")
     g.add_argument("--noise", type=float, default=None, help=noise_help)
-    g.add_argument("--seed", type=int, default=None, help=seed_help)
-    g.add_argument("--dt", type=float, default=None, help="model integration step [s] (default 1e-4)")
+    g.add_argument("--seed", type=int, default=None, help=seed_help + " (an integer >= 0)")
+    g.add_argument("--dt", type=float, default=None,
+                   help="model integration step [s] (default 1e-4; at most the IMU period 1/rate)")
     g.add_argument(
         "--effect",
         action="append",
@@ -72,13 +94,45 @@ def add_scenario_arguments(
     )
 
 
+def _ceil_2_digits(x: float) -> float:
+    """``x > 0`` rounded up to two significant digits (a floor a user can type and that is enough)."""
+    scale = 10.0 ** (math.floor(math.log10(x)) - 1)
+    return math.ceil(x / scale * (1 - 1e-12)) * scale
+
+
+def check_cycle_length(scenario: Scenario) -> None:
+    """ValueError when a leg cycle of ``scenario`` would take more than :data:`MAX_CYCLE_STEPS` model steps
+    (a cycle is simulated whole: its memory grows with its length), naming the cycle and the leg speed
+    that would do."""
+    from slipest.model.stream import cycle_starts
+
+    periods = np.diff(cycle_starts(scenario))
+    j = int(np.argmax(periods))
+    steps = periods[j] / scenario.dt
+    if steps > MAX_CYCLE_STEPS:
+        omega = scenario.cycles[j].omega
+        floor = _ceil_2_digits(omega * steps / MAX_CYCLE_STEPS)  # a cycle's length goes as 1 / omega
+        raise ValueError(
+            f"leg cycle {j + 1} at omega={omega:g} rad/s lasts {periods[j]:.0f} s, {steps:.3g} model steps of "
+            f"dt={scenario.dt:g} s; a cycle is simulated at once and may take at most {MAX_CYCLE_STEPS:.0e} "
+            f"steps (10 minutes at the default dt; more would need gigabytes of memory): give a leg speed "
+            f"omega >= {floor:g} rad/s")
+
+
 def build_scenario(args: argparse.Namespace) -> Scenario:
-    """The scenario the options describe (a TOML file's imu settings can be overridden by options)."""
+    """The scenario the options describe (a TOML file's imu settings can be overridden by options).
+
+    SystemExit naming the file (and its section and key) when a scenario file cannot be used; ValueError
+    naming the option or parameter when the options describe no valid scenario (e.g. a negative
+    ``--seed``, a non-finite parameter, a leg cycle longer than :data:`MAX_CYCLE_STEPS` model steps).
+    """
     effects = []
     if args.effect:
         from slipest.model.effects import parse_effect_arg
 
         effects = [parse_effect_arg(text) for text in args.effect]
+    if args.seed is not None and args.seed < 0:
+        raise ValueError(f"--seed={args.seed}: the seed must be a non-negative integer")
     if args.scenario:
         try:
             with open(args.scenario, "rb") as fh:
@@ -87,19 +141,24 @@ def build_scenario(args: argparse.Namespace) -> Scenario:
             raise SystemExit(f"slipest simulate: {args.scenario}: not valid TOML: {exc}") from None
         except OSError as exc:
             raise SystemExit(f"slipest simulate: cannot read scenario {args.scenario}: {exc.strerror}") from None
+        # the options go into the document only where its sections have the right shape: a wrong one is
+        # reported by Scenario.from_dict, naming the section
         imu = doc.setdefault("imu", {})
-        for opt, key in (("rate", "rate"), ("noise", "noise"), ("seed", "seed"), ("dt", "dt")):
-            if getattr(args, opt) is not None:
-                imu[key] = getattr(args, opt)
-        if effects:
+        if isinstance(imu, dict):
+            for opt, key in (("rate", "rate"), ("noise", "noise"), ("seed", "seed"), ("dt", "dt")):
+                if getattr(args, opt) is not None:
+                    imu[key] = getattr(args, opt)
+        if effects and isinstance(doc.get("effect", []), list):
             doc["effect"] = list(doc.get("effect", [])) + effects
         if args.omega is not None:
             raise SystemExit("slipest simulate: --omega goes with the options; a scenario file sets the leg speed "
                              "in [model] or per [[segment]] (omega = ...)")
         try:
-            return Scenario.from_dict(doc)
+            scenario = Scenario.from_dict(doc)
+            check_cycle_length(scenario)
         except (ValueError, TypeError) as exc:
             raise SystemExit(f"slipest simulate: {args.scenario}: {exc}") from None
+        return scenario
     params = StickSlipParams(
         slip=args.slip, kS=args.kS, phiS=args.phiS, phiD=args.phiD, kappa=args.kappa, nL=args.legs,
         **({} if args.omega is None else {"omega": args.omega}),
@@ -113,13 +172,107 @@ def build_scenario(args: argparse.Namespace) -> Scenario:
         imu["dt"] = args.dt
     if args.cycles < 1:
         raise ValueError(f"--cycles={args.cycles} must be >= 1")
-    return Scenario(cycles=(params,) * args.cycles, effects=tuple(effects), **imu)
+    scenario = Scenario(cycles=(params,) * args.cycles, effects=tuple(effects), **imu)
+    check_cycle_length(scenario)
+    return scenario
+
+
+def _interrupt_on_sigterm():
+    """Make SIGTERM raise KeyboardInterrupt (as Ctrl-C does), so a run stopped either way cleans up; returns
+    what to restore (None when this is not the main thread, where no handler can be set)."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+
+    def _term(signum, frame):
+        raise KeyboardInterrupt
+
+    return signal.signal(signal.SIGTERM, _term)
+
+
+def _stream_log(scenario: Scenario, target) -> None:
+    """Simulate ``scenario`` into ``target`` (a path or an open stream) as a log, chunk by chunk."""
+    from slipest.io.log_csv import LogWriter
+    from slipest.model.stream import iter_stream
+
+    with LogWriter(target, ("t", "az", "theta", "slip"), metadata={**scenario.metadata(), "source": SOURCE},
+                   overwrite=True) as writer:
+        for chunk in iter_stream(scenario):
+            writer.write(chunk.t, chunk.az, chunk.theta, chunk.slip)
+            writer.flush()
+
+
+def _write_file(scenario: Scenario, output: str) -> None:
+    """Simulate into a temporary file beside ``output`` and move it onto ``output`` once whole (a regular file
+    or none; anything else, e.g. /dev/null, is written directly). On any error or interruption (Ctrl-C,
+    SIGTERM: KeyboardInterrupt) the temporary file is removed, ``output`` is left as it was and stderr says
+    so; a model failure, a scenario the stages refuse or an OSError becomes SystemExit with the message,
+    anything else goes on."""
+    from slipest.model.stance import ModelFailure
+
+    dest = os.path.realpath(output)  # through a symbolic link: the file it names is replaced, not the link
+    try:
+        mode = os.stat(dest).st_mode
+    except FileNotFoundError:
+        mode = None
+    except OSError as exc:
+        raise SystemExit(f"slipest simulate: cannot write {output}: {exc.strerror or exc}") from None
+    if mode is not None and not stat.S_ISREG(mode):  # a device or a pipe: nothing to replace
+        try:
+            _stream_log(scenario, output)
+        except (ModelFailure, ValueError) as exc:
+            raise SystemExit(f"slipest simulate: {exc}") from None
+        except OSError as exc:
+            raise SystemExit(f"slipest simulate: cannot write {output}: {exc.strerror or exc}") from None
+        return
+    kept = f"{output} left as it was" if mode is not None else f"no {output} made"
+    restore = _interrupt_on_sigterm()
+    tmp = None
+    done = False
+    try:
+        try:
+            fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(dest)}.", suffix=".part",
+                                       dir=os.path.dirname(dest))
+            os.close(fd)
+            if mode is not None:  # the permissions of the file replaced, else those of a new file
+                os.chmod(tmp, stat.S_IMODE(mode))
+            else:
+                umask = os.umask(0)
+                os.umask(umask)
+                os.chmod(tmp, 0o666 & ~umask)
+        except OSError as exc:
+            raise SystemExit(f"slipest simulate: cannot write {output}: {exc.strerror or exc} (the log is "
+                             f"written first into a temporary file in {os.path.dirname(dest)})") from None
+        _stream_log(scenario, tmp)
+        os.replace(tmp, dest)
+        done = True
+    except (ModelFailure, ValueError) as exc:
+        raise SystemExit(f"slipest simulate: {exc}; nothing written ({kept})") from None
+    except OSError as exc:
+        raise SystemExit(f"slipest simulate: cannot write {output}: {exc.strerror or exc}; nothing written "
+                         f"({kept})") from None
+    except KeyboardInterrupt:
+        print(f"slipest simulate: interrupted: nothing written ({kept})", file=sys.stderr)
+        raise
+    except SystemExit:
+        raise
+    except BaseException:
+        print(f"slipest simulate: nothing written ({kept})", file=sys.stderr)
+        raise
+    finally:
+        if tmp is not None and not done:
+            try:
+                os.remove(tmp)
+            except FileNotFoundError:
+                pass
+            except OSError as exc:
+                print(f"slipest simulate: cannot remove the partial log {tmp}: {exc.strerror or exc}",
+                      file=sys.stderr)
+        if restore is not None:
+            signal.signal(signal.SIGTERM, restore)
 
 
 def run(args: argparse.Namespace) -> int:
-    from slipest.io.log_csv import LogWriter
     from slipest.model.stance import ModelFailure
-    from slipest.model.stream import iter_stream
 
     try:
         scenario = build_scenario(args)
@@ -133,24 +286,12 @@ def run(args: argparse.Namespace) -> int:
     if target is not sys.stdout and os.path.exists(target) and not (args.overwrite or _simulated(target)):
         raise SystemExit(f"slipest simulate: {target} exists and is not a simulated log: use --overwrite to "
                          "replace it")
-    try:
-        writer = LogWriter(target, ("t", "az", "theta", "slip"), metadata={**scenario.metadata(), "source": SOURCE},
-                           overwrite=True)
-    except OSError as exc:
-        raise SystemExit(f"slipest simulate: cannot write {args.output}: {exc.strerror or exc}") from None
-    with writer:
+    if target is sys.stdout:  # streamed: what is written stays written
         try:
-            for chunk in iter_stream(scenario):
-                writer.write(chunk.t, chunk.az, chunk.theta, chunk.slip)
-                writer.flush()
-        except ModelFailure as exc:
-            failure = exc
-        else:
-            failure = None
-    if failure is not None:
-        if target is not sys.stdout:
-            os.remove(target)  # a partial simulated log would pass for a whole one
-        raise SystemExit(f"slipest simulate: {failure}")
-    if args.output != "-":
-        print(f"wrote {len(scenario.cycles)} leg cycles to {args.output}", file=sys.stderr)
+            _stream_log(scenario, target)
+        except (ModelFailure, ValueError) as exc:
+            raise SystemExit(f"slipest simulate: {exc}") from None
+        return 0
+    _write_file(scenario, target)
+    print(f"wrote {len(scenario.cycles)} leg cycles to {args.output}", file=sys.stderr)
     return 0

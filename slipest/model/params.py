@@ -25,7 +25,7 @@ DEFAULT_LEGS = 4
 
 @dataclass(frozen=True)
 class StickSlipParams:
-    """One stance's parameters (SI).
+    """One stance's parameters (SI); every field a finite number (ValueError naming the field otherwise).
 
     slip: slip ratio ``i`` [-], 0 (none) to <1.
     kS: leg/soil spring stiffness [N/m].
@@ -35,12 +35,13 @@ class StickSlipParams:
     MH: hub mass [kg]; mF: foot mass [kg]; nL: number of legs [-];
     lS: spring rest length (spoke length) [m]; omega: leg speed [rad/s];
     g: gravity [m/s^2].
-    b_hc: Hunt-Crossley damping ``bHC`` [N s/m^(1+nHC)] (0: off);
-    n_hc: Hunt-Crossley exponent ``nHC`` [-].
-    stribeck_vs: Stribeck velocity [m/s] (0: constant ``muD``);
-    stribeck_exp: Stribeck exponent [-]; viscous: viscous friction [N s/m].
+    b_hc: Hunt-Crossley damping ``bHC`` [N s/m^(1+nHC)], >= 0 (0: off);
+    n_hc: Hunt-Crossley exponent ``nHC`` [-], >= 0.
+    stribeck_vs: Stribeck velocity [m/s], >= 0 (0: constant ``muD``);
+    stribeck_exp: Stribeck exponent [-], > 0; viscous: viscous friction [N s/m], >= 0.
     ripple_amp: relative drive speed ripple ``A`` in
-        ``omega (1 + A sin(h nL theta + ripple_phase))`` [-]; ripple_phase [rad];
+        ``omega (1 + A sin(h nL theta + ripple_phase))`` [-], in [0, 1);
+        ripple_phase [rad], any finite angle;
         ripple_harmonic: ``h``, ripples per leg cycle (integer >= 1).
     """
 
@@ -66,20 +67,31 @@ class StickSlipParams:
 
     def __post_init__(self):
         problems = []
+        # every field is a finite number first: NaN fails no comparison, so a range check alone lets it through
+        for f in fields(self):
+            value = getattr(self, f.name)
+            try:
+                finite = not isinstance(value, (bool, str)) and math.isfinite(value)
+            except TypeError:
+                finite = False
+            if not finite:
+                problems.append(f"{f.name}={value!r} must be a finite number")
+        if problems:
+            raise ValueError("invalid stick-slip parameters: " + "; ".join(problems))
         if not 0.0 <= self.slip < 1.0:
             problems.append(f"slip={self.slip} must be in [0, 1)")
-        for name in ("kS", "MH", "mF", "lS", "omega", "g"):
+        for name in ("kS", "MH", "mF", "lS", "omega", "g", "stribeck_exp"):
             value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0.0):
+            if not value > 0.0:
                 problems.append(f"{name}={value} must be a positive finite number")
         if not 0.0 < self.phiD <= self.phiS < math.pi / 2:
             problems.append(f"friction angles must satisfy 0 < phiD <= phiS < pi/2 (phiS={self.phiS}, phiD={self.phiD})")
-        if self.kappa < 0.0:
-            problems.append(f"kappa={self.kappa} must be >= 0")
+        for name in ("kappa", "b_hc", "n_hc", "stribeck_vs", "viscous"):
+            value = getattr(self, name)
+            if value < 0.0:
+                problems.append(f"{name}={value} must be >= 0")
         if int(self.nL) != self.nL or self.nL < 2:
             problems.append(f"nL={self.nL} must be an integer >= 2")
-        if self.b_hc < 0.0 or self.stribeck_vs < 0.0 or self.viscous < 0.0:
-            problems.append("b_hc, stribeck_vs and viscous must be >= 0")
         if not 0.0 <= self.ripple_amp < 1.0:
             problems.append(f"ripple_amp={self.ripple_amp} must be in [0, 1)")
         if int(self.ripple_harmonic) != self.ripple_harmonic or self.ripple_harmonic < 1:

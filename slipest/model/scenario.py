@@ -22,17 +22,23 @@ TOML/dict layout (every key optional except the segments)::
     phiD = 0.35      # [rad]
     omega = 0.8      # leg speed [rad/s] (a ramp too)
 
-A key a segment omits takes its value from ``[model]`` (or the model's
-default), not from the previous segment.
     [[effect]]       # effects of the sim-to-real catalog (slipest.model.effects)
     name = "imu_lowpass"
     cutoff = 40.0
+
+A key a segment omits takes its value from ``[model]`` (or the model's
+default), not from the previous segment. ``[model]`` and ``[imu]`` are
+tables, ``segment`` and ``effect`` arrays of tables (``[[segment]]``); every
+number is a finite number (a boolean is not one), ``cycles`` a positive
+integer, ``seed`` a non-negative integer. Effects are checked (names,
+parameters, each effect named once) when the scenario is built, so a bad
+one fails before anything is simulated or written.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Sequence
 
 import numpy as np
@@ -43,15 +49,81 @@ from slipest.model.stance import DEFAULT_DT
 #: Default IMU sample rate [Hz].
 DEFAULT_RATE = 1000.0
 
+#: Default value of every model parameter (the header lists those a run changes).
+_DEFAULTS = {f.name: f.default for f in fields(StickSlipParams)}
+
 #: Per-cycle fields a segment may set (``omega``: the leg speed [rad/s]); the rest belong to [model].
 SEGMENT_FIELDS = ("slip", "kS", "phiS", "phiD", "omega")
 
 
 def _number(where: str, key: str, value) -> float:
-    """A scenario value as a float, or a ValueError naming the section (or segment) and the key."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
+    """A scenario value as a finite float, or a ValueError naming the section (or segment) and the key."""
+    if isinstance(value, bool):  # a bool is an int to Python, not to the user who wrote "true"
+        raise ValueError(f"{where}: {key} = {str(value).lower()} is a boolean: it must be a number")
+    if not isinstance(value, (int, float)):
         raise ValueError(f"{where}: {key} = {value!r} must be a number")
+    if not math.isfinite(value):
+        raise ValueError(f"{where}: {key} = {value!r} must be a finite number")
     return float(value)
+
+
+def _toml_type(value) -> str:
+    """What a TOML value is, in a user's words (for the error messages)."""
+    if isinstance(value, dict):
+        return "a table"
+    if isinstance(value, (list, tuple)):
+        return "an array"
+    if isinstance(value, bool):
+        return "a boolean"
+    if isinstance(value, str):
+        return "a string"
+    return "a number" if isinstance(value, (int, float)) else type(value).__name__
+
+
+def _table(doc: dict, key: str) -> dict:
+    """Section ``[key]`` of a scenario document as a dict (empty when absent), or a ValueError naming it."""
+    value = doc.get(key, {})
+    if not isinstance(value, dict):
+        raise ValueError(f"{key} = {value!r} is {_toml_type(value)}: [{key}] must be a table (a [{key}] section "
+                         f"of key = value lines)")
+    return value
+
+
+def _array_of_tables(doc: dict, key: str) -> list:
+    """Section ``[[key]]`` of a scenario document as a list of dicts (empty when absent), or a ValueError."""
+    value = doc.get(key, [])
+    if isinstance(value, dict):
+        raise ValueError(f"[{key}] is a single table: write [[{key}]] (an array of tables, one [[{key}]] "
+                         f"per {key})")
+    if not isinstance(value, (list, tuple)):
+        raise ValueError(f"{key} = {value!r} is {_toml_type(value)}: {key} must be an array of tables "
+                         f"([[{key}]] sections)")
+    for j, item in enumerate(value, start=1):
+        if not isinstance(item, dict):
+            raise ValueError(f"{key} = {list(value)!r}: {key} {j} is {_toml_type(item)}, not a table: "
+                             f"write each {key} as a [[{key}]] section")
+    return list(value)
+
+
+def _effect_name(spec) -> str:
+    """The name of a checked effect specification, or a ValueError naming the effect, parameter and problem."""
+    from slipest.model.effects import normalise_spec
+
+    return normalise_spec(spec)["name"]
+
+
+def check_effects(effects) -> None:
+    """ValueError naming the problem when the effect specifications (``{"name": ..., params}`` dicts) are
+    not a valid list: an unknown effect or parameter, a value out of its bounds, an effect named twice."""
+    names = []
+    for j, spec in enumerate(effects or (), start=1):
+        try:
+            names.append(_effect_name(spec))
+        except ValueError as exc:
+            raise ValueError(f"effect {j}: {exc}") from None
+    dupes = sorted({n for n in names if names.count(n) > 1})
+    if dupes:
+        raise ValueError(f"effect(s) named more than once: {', '.join(dupes)} (each effect may be named once)")
 
 
 @dataclass(frozen=True)
@@ -60,10 +132,12 @@ class Scenario:
 
     cycles: one :class:`StickSlipParams` per leg cycle, in driving order.
     rate: IMU sample rate [Hz]. noise_g: IMU noise standard deviation [g].
-    seed: random seed of the noise (None: fresh entropy).
-    dt: model integration step [s].
+    seed: random seed of the noise, an integer >= 0 (None: fresh entropy).
+    dt: model integration step [s], not coarser than the IMU period ``1 / rate``.
     effects: effect specifications (``{"name": ..., params...}`` dicts) of
-        the sim-to-real catalog, applied by :mod:`slipest.model.stream`.
+        the sim-to-real catalog, applied by :mod:`slipest.model.stream`;
+        checked here (:func:`check_effects`).
+    ValueError naming the field when one is not valid.
     """
 
     cycles: tuple[StickSlipParams, ...]
@@ -84,8 +158,17 @@ class Scenario:
             raise ValueError(f"IMU rate={self.rate} Hz must be positive")
         if not (math.isfinite(self.noise_g) and self.noise_g >= 0):
             raise ValueError(f"IMU noise={self.noise_g} g must be >= 0")
-        if not 0 < self.dt <= 1.0 / self.rate:
-            raise ValueError(f"model step dt={self.dt} s must be positive and not coarser than the IMU period")
+        if self.seed is not None and (isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer))
+                                      or self.seed < 0):
+            raise ValueError(f"IMU seed={self.seed!r} must be a non-negative integer")
+        if not (math.isfinite(self.dt) and self.dt > 0):
+            raise ValueError(f"model step dt={self.dt} s must be a positive finite number")
+        if self.dt > 1.0 / self.rate:
+            raise ValueError(
+                f"model step dt={self.dt:g} s is coarser than the IMU period 1/rate = {1.0 / self.rate:g} s "
+                f"(rate {self.rate:g} Hz): give a model step dt <= {1.0 / self.rate:g} s (--dt, or dt in a "
+                "scenario's [imu]) or a lower rate")
+        check_effects(self.effects)
 
     @property
     def n_legs(self) -> int:
@@ -134,6 +217,8 @@ class Scenario:
         base = base or StickSlipParams()
         cycles: list[StickSlipParams] = []
         for s, seg in enumerate(segments, start=1):
+            if not isinstance(seg, dict):
+                raise ValueError(f"segment {s} is {_toml_type(seg)}, not a table of cycles, slip, ...")
             seg = dict(seg)
             unknown = set(seg) - set(SEGMENT_FIELDS) - {"cycles"}
             if unknown:
@@ -141,6 +226,9 @@ class Scenario:
             if "cycles" not in seg:
                 raise ValueError(f"segment {s}: 'cycles' is required")
             n = seg.pop("cycles")
+            if isinstance(n, bool):  # a bool is an int to Python, not to the user who wrote "true"
+                raise ValueError(f"segment {s}: cycles = {str(n).lower()} is a boolean: cycles must be a "
+                                 "positive integer (a number of leg cycles)")
             if not isinstance(n, int) or n < 1:
                 raise ValueError(f"segment {s}: cycles={n!r} must be a positive integer")
             ramps = {}
@@ -165,7 +253,7 @@ class Scenario:
         unknown = set(doc) - {"model", "imu", "segment", "effect"}
         if unknown:
             raise ValueError(f"unknown scenario section(s) {sorted(unknown)}; allowed: model, imu, segment, effect")
-        model = dict(doc.get("model", {}))
+        model = dict(_table(doc, "model"))
         bad = set(model) - set(PARAM_NAMES)
         if bad:
             raise ValueError(f"[model]: unknown parameter(s) {sorted(bad)}")
@@ -175,31 +263,49 @@ class Scenario:
                 if model[key] != int(model[key]):
                     raise ValueError(f"[model]: nL = {value!r} must be an integer")
                 model[key] = int(model[key])
-        base = StickSlipParams(**model)
-        imu_doc = dict(doc.get("imu", {}))
+        try:
+            base = StickSlipParams(**model)
+        except ValueError as exc:
+            raise ValueError(f"[model]: {exc}") from None
+        imu_doc = dict(_table(doc, "imu"))
         imu = {}
         for key, target in (("rate", "rate"), ("noise", "noise_g"), ("seed", "seed"), ("dt", "dt")):
             if key in imu_doc:
                 value = imu_doc.pop(key)
                 if key == "seed":
-                    if not isinstance(value, int) or isinstance(value, bool):
-                        raise ValueError(f"[imu]: seed = {value!r} must be an integer")
+                    if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+                        raise ValueError(f"[imu]: seed = {value!r} must be a non-negative integer")
                     imu[target] = value
                 else:
                     imu[target] = _number("[imu]", key, value)
         if imu_doc:
             raise ValueError(f"[imu]: unknown key(s) {sorted(imu_doc)}; allowed: rate, noise, seed, dt")
-        segments = doc.get("segment")
+        segments = _array_of_tables(doc, "segment")
         if not segments:
             raise ValueError("a scenario needs at least one [[segment]]")
-        effects = tuple(dict(e) for e in doc.get("effect", ()))
-        for e in effects:
+        effects = tuple(dict(e) for e in _array_of_tables(doc, "effect"))
+        for j, e in enumerate(effects, start=1):
             if "name" not in e:
-                raise ValueError(f"[[effect]] without a name: {e}")
+                raise ValueError(f"[[effect]] {j} without a name: {e}")
+            try:
+                _effect_name(e)
+            except ValueError as exc:
+                raise ValueError(f"[[effect]] {j}: {exc}") from None
+        try:
+            check_effects(effects)
+        except ValueError as exc:
+            raise ValueError(f"[[effect]]: {exc}") from None
         return cls.from_segments(segments, base=base, imu=imu, effects=effects)
 
     def metadata(self) -> dict[str, str]:
-        """``key=value`` metadata describing the run, for the log's ``#`` comments."""
+        """``key=value`` metadata describing the run, for the log's ``#`` comments.
+
+        The IMU settings, ``nL``, ``kappa``, ``MH``, ``mF``, ``lS`` and the
+        segment fields always; every other model parameter (``g``, damping,
+        Stribeck, ripple) when some cycle's differs from its default, so the
+        log says what was simulated. A parameter that changes from cycle to
+        cycle is written ``varies``.
+        """
         first = self.cycles[0]
         meta = {
             "nL": str(first.nL),
@@ -210,11 +316,21 @@ class Scenario:
         }
         if self.seed is not None:
             meta["seed"] = str(self.seed)
-        for name in ("kappa", "MH", "mF", "lS"):
-            meta[name] = f"{getattr(first, name):g}"
-        for name in SEGMENT_FIELDS:  # omega among them: "varies" when the drive changes speed
+
+        def value(name: str) -> str:
             values = {getattr(c, name) for c in self.cycles}
-            meta[name] = f"{values.pop():g}" if len(values) == 1 else "varies"
+            return f"{values.pop():.15g}" if len(values) == 1 else "varies"
+
+        for name in ("kappa", "MH", "mF", "lS"):
+            meta[name] = value(name)
+        for name in SEGMENT_FIELDS:  # omega among them: "varies" when the drive changes speed
+            meta[name] = value(name)
+        for name in PARAM_NAMES:  # the rest (gravity, the model's extensions): when not the default
+            if name in meta:
+                continue
+            default = _DEFAULTS[name]
+            if any(getattr(c, name) != default for c in self.cycles):
+                meta[name] = value(name)
         if self.effects:
             meta["effects"] = ";".join(
                 e["name"] + ":" + ",".join(f"{k}={v}" for k, v in e.items() if k != "name") for e in self.effects

@@ -21,7 +21,10 @@ drive ripple, its timeline's period). The model integrates at its own step
 on that grid, passes the "continuous" sensor stages (hub transients, the
 IMU's bandwidth), is sampled at the IMU rate, then passes the "sampled"
 stages (noise, clipping, encoder offset). The stream is produced in chunks
-of whole leg cycles, in bounded memory, identical however it is chunked.
+of whole leg cycles, in bounded memory, identical however it is chunked: a
+chunk covers at most :data:`MAX_CHUNK_SECONDS` of simulated time (but always
+one whole cycle, so a single very slow cycle still takes memory in
+proportion to its length: about 80 bytes per model step).
 """
 
 from __future__ import annotations
@@ -37,6 +40,10 @@ from slipest.model.params import StickSlipParams
 from slipest.model.scenario import Scenario
 from slipest.model.sensor import GaussianNoise, run_stages
 from slipest.model.stance import simulate_batch
+
+#: Longest simulated time [s] a chunk of :func:`iter_stream` covers (unless one cycle alone is longer): a
+#: chunk's model grid takes memory in proportion to its duration / dt (80 s: 32 cycles at the default leg speed).
+MAX_CHUNK_SECONDS = 80.0
 
 
 @dataclass(frozen=True)
@@ -153,7 +160,9 @@ def _lead_in_cycles(first: StickSlipParams, stages) -> int:
 
 
 def iter_stream(scenario: Scenario, chunk_cycles: int = 32) -> Iterator[SampleChunk]:
-    """Yield the scenario's samples in chunks of ``chunk_cycles`` leg cycles.
+    """Yield the scenario's samples in chunks of at most ``chunk_cycles`` leg cycles and at most
+    :data:`MAX_CHUNK_SECONDS` of simulated time (at least one whole cycle per chunk); the samples do not
+    depend on the chunking.
 
     A sensor stage that needs signal from before the run's start (its
     ``lead_in`` [s], e.g. a time skew's delay) gets it from lead-in cycles
@@ -175,8 +184,12 @@ def iter_stream(scenario: Scenario, chunk_cycles: int = 32) -> Iterator[SampleCh
     n_legs = cycles[0].nL
     dt = scenario.dt
     rate = scenario.rate
-    for k0 in range(0, len(cycles), chunk_cycles):
-        k1 = min(k0 + chunk_cycles, len(cycles))
+    k1 = 0
+    while k1 < len(cycles):
+        k0 = k1
+        # the last cycle that ends within MAX_CHUNK_SECONDS of this chunk's start (at least one)
+        k_end = int(np.searchsorted(start, start[k0 + n_lead] + MAX_CHUNK_SECONDS, side="right")) - 1 - n_lead
+        k1 = max(k0 + 1, min(k0 + chunk_cycles, len(cycles), k_end))
         e0, e1 = (k0 + n_lead if k0 else 0), k1 + n_lead  # the first chunk carries the lead-in
         batch = simulate_batch(ext[e0:e1], dt=dt, waveforms=True)
         # continuous signal on the model grid covering [start e0, start e1)

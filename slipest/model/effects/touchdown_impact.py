@@ -25,8 +25,11 @@ class TouchdownImpact:
 
     Boundaries are found from ``theta`` (unwrapped, 0 at midstances, legs
     ``n_legs`` apart); the stream's first sample counts as a boundary when
-    it sits on one (the first leg touching down). Transients still ringing
-    at the end of a chunk carry over into the next.
+    it sits on one (the first leg touching down). A boundary is placed where
+    ``theta`` crosses it, interpolated between the samples on either side,
+    also across two chunks (so the stream is the same however it is
+    chunked). Transients still ringing at the end of a chunk carry over into
+    the next.
     """
 
     domain = "continuous"
@@ -38,11 +41,19 @@ class TouchdownImpact:
         self.onset = float(onset)
         self.n_legs = int(n_legs)
         self._last_k = None
+        self._last_sample = None  # (t, theta) of the previous chunk's last sample
         self._active: list[float] = []  # boundary times still ringing [s]
 
     def configure(self, params: StickSlipParams):
         """Take the leg count from the model parameters."""
         self.n_legs = int(params.nL)
+
+    def _crossing(self, k, t0, th0, t1, th1) -> float:
+        """The time [s] ``theta`` crosses boundary ``k``, interpolated between samples ``(t0, th0)`` and
+        ``(t1, th1)``."""
+        th_b = k * (2 * math.pi / self.n_legs) - math.pi / self.n_legs
+        frac = (th_b - th0) / (th1 - th0) if th1 != th0 else 1.0
+        return float(t0 + frac * (t1 - t0))
 
     def apply(self, t, az, theta, rng):
         if len(t) == 0:
@@ -54,21 +65,20 @@ class TouchdownImpact:
             phase0 = theta[0] + math.pi / self.n_legs - k[0] * step
             if abs(phase0) < 1e-6:
                 times.append(float(t[0]))
-        elif k[0] != self._last_k:
-            times.append(float(t[0]))
+        elif k[0] != self._last_k:  # crossed between the previous chunk's last sample and this one's first
+            t_prev, th_prev = self._last_sample
+            times.append(self._crossing(k[0], t_prev, th_prev, float(t[0]), float(theta[0])))
         for j in np.flatnonzero(np.diff(k) != 0):
-            # interpolate the crossing of the boundary angle between samples j and j+1
-            th_b = k[j + 1] * step - math.pi / self.n_legs
-            frac = (th_b - theta[j]) / (theta[j + 1] - theta[j]) if theta[j + 1] != theta[j] else 1.0
-            times.append(float(t[j] + frac * (t[j + 1] - t[j])))
+            times.append(self._crossing(k[j + 1], t[j], theta[j], t[j + 1], theta[j + 1]))
         self._last_k = int(k[-1])
+        self._last_sample = (float(t[-1]), float(theta[-1]))
         active = self._active + times
         out = np.array(az, dtype=float, copy=True)
+        horizon = 12.0 * self.tau  # exp(-12) ~ 6e-6 of the amplitude: done (cut at that age, however chunked)
         for tb in active:
-            sel = t >= tb
+            sel = (t >= tb) & (t - tb < horizon)
             if sel.any():
                 out[sel] += impact_response(t[sel] - tb, self.amplitude, self.tau, self.freq, self.onset)
-        horizon = 12.0 * self.tau  # exp(-12) ~ 6e-6 of the amplitude: done
         self._active = [tb for tb in active if t[-1] - tb < horizon]
         return out, theta
 
