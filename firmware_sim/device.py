@@ -55,7 +55,7 @@ class ScenarioFeed:
     Every wheel's scenario must have the same rate, leg count and leg
     speeds, cycle by cycle (they share the timeline); seeds and slips may
     differ.  ``duration``
-    [s] stops the stream early.  Iterating yields frame tables (structured
+    [s] (> 0) stops the stream early.  Iterating yields frame tables (structured
     arrays of dtype :data:`~firmware_sim.link.FRAME_TABLE_DTYPE`) of
     ``chunk_cycles`` leg cycles."""
 
@@ -68,6 +68,8 @@ class ScenarioFeed:
     ):
         if not scenarios:
             raise ValueError("a device needs at least one wheel")
+        if duration is not None and not (duration > 0 and math.isfinite(duration)):
+            raise ValueError(f"duration={duration} must be a number of seconds > 0")
         first = scenarios[0]
         starts = cycle_starts(first)
         for w, sc in enumerate(scenarios):
@@ -218,8 +220,8 @@ class Device:
     ``speed``: 1.0 real time, 10 ten times faster, 0 as fast as possible.
     ``announce(text)``: where the device reports events (link paths,
     disconnects); ``stop``: a :class:`threading.Event` that ends the run.
-    ``wait_peer``: seconds to wait for a peer before starting the clock
-    (``None`` forever).  ``linger``: seconds to keep the link open after
+    ``wait_peer``: seconds (> 0) to wait for a peer before starting the clock
+    (``None`` forever).  ``linger``: seconds (>= 0) to keep the link open after
     the last frame, so the peer can drain it.  ``send_log``: keep one row per
     frame (kind, wheel, seq, t_us, send time, status, cycle, slip, and the
     values before any corruption: az, theta) for :meth:`send_log`.
@@ -245,6 +247,10 @@ class Device:
     ):
         if not (speed >= 0 and math.isfinite(speed)):
             raise ValueError(f"speed={speed} must be >= 0 (0: as fast as possible)")
+        if wait_peer is not None and not (wait_peer > 0 and math.isfinite(wait_peer)):
+            raise ValueError(f"wait_peer={wait_peer} must be a number of seconds > 0 (None: wait)")
+        if not (linger >= 0 and math.isfinite(linger)):
+            raise ValueError(f"linger={linger} must be a number of seconds >= 0")
         if clock not in ("monotonic", "zero"):
             raise ValueError(f"clock={clock!r}: expected 'monotonic' or 'zero'")
         if not isinstance(link, Link):

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import io
 import re
+from types import SimpleNamespace
 
-from slipest.cli.demo import DEMO_SCENARIO, scenario_toml
+import pytest
+
+from slipest.cli.demo import DEMO_SCENARIO, _Display, scenario_toml
 from slipest.model.scenario import Scenario
-from tests.hil_support import slipest_cmd
+from tests.hil_support import Stopping, slipest_cmd
 
 
 def _estimate_lines(lines):
@@ -71,3 +75,58 @@ def test_demo_waits_for_a_device_that_is_still_preparing_its_run_then_gives_up_o
     assert w.reason(now=101.0, started=0.0, last_data=None, device_exited=False) == _GAVE_UP
     assert w.reason(now=101.0, started=0.0, last_data=80.0, device_exited=False) is None
     assert w.reason(now=101.0, started=0.0, last_data=100.0, device_exited=True) == "the device finished"
+
+
+def test_demo_prints_each_estimates_quality_and_tells_the_live_view_when_it_starts_and_stops():
+    """The quality column says what the estimate says ('repaired' for the cycles the dropped frame and the corrupted
+    bytes hit: it said 'ok' for every cycle estimated), as on the live view; /slipest/log carries the run's start
+    and stop with the reason, as ``slipest serial --view``'s (it had the link's notices only)."""
+    pytest.importorskip("foxglove", reason="the live view needs foxglove-sdk: pip install '.[view]'")
+    pytest.importorskip("websockets", reason="the test client needs websockets (pip install '.[test]')")
+    pytest.importorskip("google.protobuf", reason="the test client decodes protobuf (pip install '.[test]')")
+    from tests.foxglove_client import FoxgloveClient, decode
+
+    with Stopping() as procs:
+        demo = procs.add(slipest_cmd("demo", "--speed", "20", "--cycles", "4", "--faults", "--view", "0"))
+        client = FoxgloveClient(int(demo.wait_line(r"live view on ws://127\.0\.0\.1:(\d+)", 60).group(1)))
+        assert client.ready.wait(10)
+        assert demo.wait(120) == 0, demo.stderr
+        client.close()
+    printed = {int(line.split()[0]): line.split()[-1] for line in _estimate_lines(demo.lines)}
+    ch = client.channel("/slipest/wheel0/estimate")
+    shown = {m["cycle"]: m["quality"] for m in (decode(ch, data) for _, data in client.of("/slipest/wheel0/estimate"))}
+    assert printed and all(printed[k] == shown[k] for k in printed), (printed, shown)
+    assert "repaired" in printed.values() and "ok" in printed.values(), printed
+    ch = client.channel("/slipest/log")
+    logs = [(x.message, x.level) for x in (decode(ch, data) for _, data in client.of("/slipest/log"))]
+    said = [m for m, level in logs if level == 2]  # 2: INFO
+    assert any(m.startswith("slipest demo: started: 4 leg cycles") and "virtual device pid" in m for m in said), logs
+    assert "slipest demo: stopping (the device finished)" in said and said[-1] == "slipest demo: the device finished"
+
+
+def test_demo_side_by_side_prints_the_rover_estimates_quality():
+    # (a rover file takes a calibration to make: the display alone, fed as the live run feeds it)
+    sc = Scenario.from_dict(DEMO_SCENARIO)
+    out = io.StringIO()
+    display = _Display(sc, out, side_by_side=True)
+    est = SimpleNamespace(cycle=1, ok=True, quality="repaired", slip=0.26, slip_std=0.05, dphi=0.17, dphi_std=0.08)
+    shipped = SimpleNamespace(**{**vars(est), "quality": "ok"})
+    display.live = SimpleNamespace(wheels={0: SimpleNamespace(estimator=SimpleNamespace(shipped={1: shipped}))})
+    display(0, est, {})
+    assert out.getvalue().rstrip().endswith("0.170  repaired"), out.getvalue()
+
+
+@pytest.mark.parametrize("option, value, why", [
+    ("--cycles", "0", "is not a number of leg cycles of the demo's drive (1..40)"),  # ran 1 cycle
+    ("--cycles", "-5", "is not a number of leg cycles of the demo's drive (1..40)"),  # ran 1 cycle
+    ("--cycles", "1000", "is not a number of leg cycles of the demo's drive (1..40)"),  # ran 40
+    ("--seed", "-3", "is not a seed (a whole number >= 0)"),  # "the device failed:" and its numpy traceback
+])
+def test_demo_refuses_a_cycle_count_outside_its_drive_and_a_negative_seed(option, value, why):
+    proc = slipest_cmd("demo", "--speed", "20", option, value)
+    try:
+        assert proc.wait(60) == 2, proc.stderr
+    finally:
+        proc.stop()
+    assert proc.err_lines[-1] == f"slipest demo: error: argument {option}: {value!r} {why}", proc.stderr
+    assert not proc.lines  # nothing started

@@ -483,3 +483,74 @@ def test_device_writes_to_a_given_port_with_pyserial(tmp_path):
         os.close(slave)
     assert [f.seq for f in frames] == list(range(expected)) and dec.counters()["crc_errors"] == 0
     assert json.loads(report.read_text())["link"]["type"] == "port"
+
+
+# --- the command line refuses what it cannot do, before it streams -----------------------------------
+
+
+def test_cli_checks_the_report_and_send_log_paths_before_the_run(tmp_path):
+    # a missing directory (the report used to be lost after the whole run, with a traceback), a directory named
+    # as the file
+    for option, path, why in (("--report", tmp_path / "missing" / "r.json", "no directory"),
+                              ("--send-log", tmp_path / "missing" / "sent.npz", "no directory"),
+                              ("--send-log", tmp_path, "is a directory")):
+        proc = firmware_sim("serial", "--cycles", "1", "--speed", "0", option, str(path))
+        try:
+            assert proc.wait(30) == 2
+        finally:
+            proc.stop()
+        assert f"error: {option} {path}" in proc.stderr and why in proc.stderr, proc.stderr
+        assert "Traceback" not in proc.stderr and not any("serial device" in line for line in proc.lines)
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full (a device that is always full)")
+def test_a_report_that_cannot_be_written_at_the_end_is_named_in_one_line_and_the_exit_status_is_1(tmp_path):
+    send_log = tmp_path / "sent.npz"
+    proc = firmware_sim("serial", "--cycles", "1", "--speed", "0", "--linger", "0", "--report", "/dev/full",
+                        "--send-log", str(send_log))
+    try:
+        frames, _ = _read_all(serial_device(proc), until=lambda: proc.p.poll() is not None)
+        assert proc.wait(30) == 1, proc.stderr
+    finally:
+        proc.stop()
+    assert "Traceback" not in proc.stderr
+    assert "firmware-sim: cannot write the report /dev/full: No space left on device" in proc.err_lines
+    assert proc.lines[-1] == "firmware-sim: done" and len(frames) > 2000
+    assert np.load(send_log)["status"].size == 2494  # the other file is written all the same
+    assert any(line.startswith("firmware-sim: sent ") for line in proc.err_lines)  # and the summary given
+
+
+@pytest.mark.parametrize("option, value, why", [
+    ("--speed", "-1", "time factor >= 0"),  # was a traceback out of the Device
+    ("--duration", "-5", "duration > 0"),  # was taken: 0 frames sent, exit 0
+    ("--seed", "-1", "not a seed"),  # was a numpy traceback once a reader had connected
+])
+def test_cli_refuses_a_negative_speed_duration_or_seed_in_one_line(option, value, why):
+    proc = firmware_sim("serial", "--cycles", "1", "--wait-peer", "5", option, value)
+    try:
+        assert proc.wait(30) == 2
+    finally:
+        proc.stop()
+    assert f"error: argument {option}: " in proc.err_lines[-1] and why in proc.err_lines[-1], proc.stderr
+    assert "Traceback" not in proc.stderr and not proc.lines
+
+
+@pytest.mark.parametrize("option, value", [
+    ("--speed", "nan"), ("--speed", "inf"), ("--duration", "0"), ("--duration", "nan"), ("--duration", "inf"),
+    ("--wait-peer", "0"), ("--wait-peer", "-1"), ("--wait-peer", "nan"), ("--linger", "-1"), ("--linger", "nan"),
+    ("--linger", "inf"), ("--settle", "-1"), ("--settle", "nan"), ("--baudrate", "0"), ("--baudrate", "-5"),
+    ("--wheels", "0"), ("--wheels", "7"), ("--corrupt-rate", "nan"), ("--drop-rate", "2"), ("--fault-seed", "-1"),
+    ("--fault", "drop@1:n=2,wheel=1"),
+])
+def test_cli_refuses_meaningless_numbers_as_it_parses_them(option, value, capsys, monkeypatch):
+    from firmware_sim import cli
+
+    def taken(args):
+        raise AssertionError(f"{option} {value} was taken")  # (no link, no run in this process)
+
+    monkeypatch.setattr(cli, "make_link", taken)
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["serial", "--cycles", "1", "--speed", "0", option, value])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert exc.value.code == 2 and err[-1].startswith("firmware-sim"), err
+    assert option in err[-1] and value.split(":")[0] in err[-1], err

@@ -10,13 +10,14 @@ summary: slip and dphi RMSE, how often the 95 % intervals cover the truth,
 frames lost, and latencies.
 
 About 100 s at real time (40 leg cycles); ``--speed 10`` runs it ten times
-faster, ``--cycles N`` shortens it.  ``--faults`` makes the device misbehave
+faster, ``--cycles N`` (1..40) shortens it.  ``--faults`` makes the device misbehave
 (a dropped frame, corrupted bytes or unknown CAN IDs, a stuck sensor, a
 disconnection) to show that the estimator survives, counts them and never
 estimates from damaged cycles.  ``--view 8765`` also shows the run live in
 Foxglove (``pip install 'slipest[view]'``; docs/live-view.md): the
-estimates, ``az`` and the leg angle, and the truth on
-``/slipest/demo/truth``.
+estimates, ``az`` and the leg angle, the truth on
+``/slipest/demo/truth``, and the run's notices (start, stop and why, the
+link's trouble) on ``/slipest/log``.
 
 ``--effect NAME:k=v,...`` has the device simulate a rover with a
 sim-to-real effect (``slipest simulate``'s catalog); ``--rover ROVER.json``
@@ -61,6 +62,31 @@ _GAVE_UP = "no data from the device for 30 s"
 _START_LIMIT = 300.0
 _NO_START = f"the device did not start streaming within {_START_LIMIT:.0f} s"
 _STRETCHES = ("firm soil, steady slip", "same soil, slip rising", "stiffer, grippier soil", "soft soil, slip falling")
+#: Leg cycles of the demo's drive: the most ``--cycles`` drives (the four stretches are the scenario's whole drive).
+DEMO_CYCLES = sum(int(seg["cycles"]) for seg in DEMO_SCENARIO["segment"])
+
+
+def cycle_count(text: str) -> int:
+    """``--cycles``: a whole number of leg cycles in 1..:data:`DEMO_CYCLES` (argparse type)."""
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if not 1 <= n <= DEMO_CYCLES:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of leg cycles of the demo's drive "
+                                         f"(1..{DEMO_CYCLES})")
+    return n
+
+
+def seed_number(text: str) -> int:
+    """``--seed``: a whole number >= 0, as the device's noise generator takes (argparse type)."""
+    try:
+        n = int(text)
+    except ValueError:
+        n = -1
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a seed (a whole number >= 0)")
+    return n
 
 
 def add_parser(sub) -> None:
@@ -69,8 +95,9 @@ def add_parser(sub) -> None:
     p.add_argument("--bus", choices=("serial", "can"), default="serial",
                    help="link between device and estimator: a pseudo-terminal (default) or the CAN server")
     p.add_argument("--speed", type=float, default=1.0, help="time factor of the device (default 1: real time)")
-    p.add_argument("--cycles", type=int, default=None, help="leg cycles to drive (default: all 40)")
-    p.add_argument("--seed", type=int, default=7, help="seed of the IMU noise (default 7)")
+    p.add_argument("--cycles", type=cycle_count, default=None,
+                   help=f"leg cycles to drive, 1..{DEMO_CYCLES} (default: all {DEMO_CYCLES})")
+    p.add_argument("--seed", type=seed_number, default=7, help="seed of the IMU noise, >= 0 (default 7)")
     p.add_argument("--faults", action="store_true", help="inject faults (dropped frame, corruption, stuck sensor, "
                    "disconnection) and show they are counted and never estimated from")
     p.add_argument("--effect", action="append", default=[], metavar="NAME:k=v,...",
@@ -219,7 +246,8 @@ class _Child:
 
 
 class _Display:
-    """One line per leg cycle, the estimate beside the truth; keeps the results."""
+    """One line per leg cycle, the estimate beside the truth and its quality (``ok``, ``repaired``: estimated
+    without some samples, or why it was not estimated); keeps the results."""
 
     def __init__(self, scenario, out, side_by_side: bool = False):
         self.cycles = scenario.cycles
@@ -265,10 +293,10 @@ class _Display:
             else:
                 shipped = f"{'not estimated':>18}"
             print(f"{k:>5} {t:7.1f}  {shipped} {est.slip:7.3f} ±{est.slip_std:5.3f} {truth.slip:6.3f}   "
-                  f"{est.dphi:9.3f} ±{est.dphi_std:5.3f} {dphi:6.3f}  ok", file=self.out, flush=True)
+                  f"{est.dphi:9.3f} ±{est.dphi_std:5.3f} {dphi:6.3f}  {est.quality}", file=self.out, flush=True)
             return
         print(f"{k:>5} {t:7.1f}  {est.slip:7.3f} ±{est.slip_std:5.3f} {truth.slip:6.3f}   "
-              f"{est.dphi:12.3f} ±{est.dphi_std:5.3f} {dphi:6.3f}  ok", file=self.out, flush=True)
+              f"{est.dphi:12.3f} ±{est.dphi_std:5.3f} {dphi:6.3f}  {est.quality}", file=self.out, flush=True)
 
 
 def _summary(display: _Display, live, source_counters: dict, device_report: dict | None, out) -> dict:
@@ -357,7 +385,7 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:  # an unknown effect or parameter, a rover file that cannot be used: named
         raise SystemExit(f"slipest demo: {exc}") from None
     period = 2 * math.pi / (scenario.n_legs * scenario.omega)
-    n_cycles = len(scenario.cycles) if args.cycles is None else max(1, min(args.cycles, len(scenario.cycles)))
+    n_cycles = len(scenario.cycles) if args.cycles is None else args.cycles  # (cycle_count: 1..DEMO_CYCLES)
     duration = n_cycles * period  # the last cycle driven is estimated at the end of the stream (finish)
     speed = args.speed
 
@@ -373,6 +401,12 @@ def run(args: argparse.Namespace) -> int:
     code = 0
 
     view = None
+
+    def say(text: str, level: str = "info") -> None:
+        """A notice of the run on the live view's ``/slipest/log`` (its start, stop and why, as ``slipest
+        serial --view`` publishes them); nothing without a view (the demo prints its own lines)."""
+        if view is not None:
+            view.notice(f"slipest demo: {text}", level)
 
     def side_by_side(wheel):
         from slipest.online import SlipEstimator
@@ -398,8 +432,8 @@ def run(args: argparse.Namespace) -> int:
             fh.write(scenario_toml(doc))
         link_name = "a pseudo-terminal" if args.bus == "serial" else "a CAN bus (slipest can-server)"
         faster = f", shown {speed:g}x faster" if speed not in (0, 1) else ""
-        print(f"slipest demo: {n_cycles} leg cycles ({n_cycles * period:.0f} s of driving{faster}) over {link_name}",
-              file=out, flush=True)
+        drive = f"{n_cycles} leg cycles ({n_cycles * period:.0f} s of driving{faster}) over {link_name}"
+        print(f"slipest demo: {drive}", file=out, flush=True)
         if args.effect:
             print(f"slipest demo: the device simulates a rover with {', '.join(args.effect)}"
                   + (f"; estimates with the shipped model and with {args.rover} side by side" if rover else ""),
@@ -436,6 +470,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"slipest demo: CAN server (pid {server.p.pid}) on 127.0.0.1:{port}, virtual device (pid "
                   f"{device.p.pid}); estimates are published back on the bus", file=out, flush=True)
         display.header()
+        say(f"started: {drive}, virtual device pid {device.p.pid}")
 
         watch = _DeviceWatch()
 
@@ -449,19 +484,27 @@ def run(args: argparse.Namespace) -> int:
                       "install also compiles its kernels, about a minute)", file=out, flush=True)
             return reason
 
-        result = run_live(source, live, StopConditions(until=device_done), on_notice=_notices_to(view))
-        if result.interrupted:
-            print("\nslipest demo: interrupted", file=out)
-        elif result.reason in (_GAVE_UP, _NO_START):
+        result = run_live(source, live, StopConditions(until=device_done), on_notice=_notices_to(view),
+                          on_stopping=lambda reason: say(f"stopping ({reason})"))
+        if result.reason in (_GAVE_UP, _NO_START):
             print(f"slipest demo: {result.reason}; giving up", file=sys.stderr)
+            say(f"{result.reason}; giving up", "error")
             code = 1
-        elif device.p.wait(10) != 0:
-            print("slipest demo: the device failed: " + " | ".join(device.err[-5:]), file=sys.stderr)
-            code = 1
+        else:
+            say(result.reason)  # "the device finished", "interrupted (SIGINT)"
+            if result.interrupted:
+                print("\nslipest demo: interrupted", file=out)
+            elif device.p.wait(10) != 0:
+                failure = "the device failed: " + " | ".join(device.err[-5:])
+                print(f"slipest demo: {failure}", file=sys.stderr)
+                say(failure, "error")
+                code = 1
     except KeyboardInterrupt:
         print("\nslipest demo: interrupted", file=out)
+        say("interrupted")
     except (OSError, RuntimeError) as exc:
         print(f"slipest demo: {exc}", file=sys.stderr)
+        say(str(exc), "error")
         code = 1
     finally:
         for child in reversed(children):
