@@ -122,7 +122,7 @@ def test_simulate_a_value_of_the_wrong_type_names_the_file_segment_and_key(tmp_p
     assert "bad.toml" in str(exc.value) and where in str(exc.value), str(exc.value)
 
 
-# --- defects found by QA (s23): each of these failed before the fix ---------------------------------------------
+# --- bad values, interrupted runs, the header and the cycle length ---------------------------------------------
 
 def _good_log(tmp_path, name="run.csv"):
     """A simulated log made a moment ago at ``name``: what a failed or interrupted run must leave untouched."""

@@ -213,7 +213,8 @@ def test_a_viewer_that_stops_reading_slows_nothing_down(tmp_path):
 def test_the_demo_shows_its_truth_beside_the_estimates_and_its_notices():
     """``slipest demo --faults --view``: the truth of every cycle on its own topic, the estimates of the intact
     cycles near it, the damaged ones (a dropped frame, corrupted bytes, a stuck sensor) not estimated, and the
-    link's notices (the disconnection) on /slipest/log."""
+    link's notices (the disconnection) on /slipest/log with the run's start and stop (it had the link's only).
+    The demo's printed quality column says what each estimate says (it printed 'ok' for 'repaired' ones)."""
     from slipest.cli.demo import DEMO_SCENARIO
 
     with Stopping() as procs:
@@ -241,6 +242,12 @@ def test_the_demo_shows_its_truth_beside_the_estimates_and_its_notices():
     logs = [decode(ch, data) for _, data in client.of("/slipest/log")]
     assert any(x.message.startswith("slipest demo: ") and "disconnected" in x.message and x.level == 3
                for x in logs), [x.message for x in logs]  # 3: WARNING
+    said = [x.message for x in logs if x.level == 2]  # 2: INFO
+    assert any(m.startswith("slipest demo: started: 6 leg cycles") and "virtual device pid" in m for m in said), said
+    assert "slipest demo: stopping (the device finished)" in said and said[-1] == "slipest demo: the device finished"
+    printed = {int(line.split()[0]): line.split()[-1] for line in demo.lines
+               if re.match(r"^\s+\d+\s+[\d.]+\s+[\d.]+ ±", line)}
+    assert printed and all(printed[k] == shown[k]["quality"] for k in printed), (printed, shown)
 
 
 def test_without_foxglove_the_option_says_what_to_install(tmp_path):
