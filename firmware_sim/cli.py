@@ -177,19 +177,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 def build_scenarios(args) -> list:
     """One scenario per wheel (seed + wheel unless --same-noise).  ValueError on a wheel count outside
-    1..:data:`MAX_WHEELS` or a negative seed (``--seed`` or the scenario file's), which the noise
-    generator would refuse only once the device streams."""
+    1..:data:`MAX_WHEELS`, or from :func:`slipest.cli.simulate.build_scenario` (a negative seed, ``--seed`` or
+    the scenario file's, among others), before the device streams."""
     from slipest.cli.simulate import build_scenario
 
     if not 1 <= args.wheels <= MAX_WHEELS:
         raise ValueError(f"--wheels={args.wheels} must be 1..{MAX_WHEELS}")
-    if args.seed is not None and args.seed < 0:
-        raise ValueError(f"argument --seed: {args.seed} is not a seed (a whole number >= 0)")
     if args.noise is None and not _scenario_sets_noise(args.scenario):
         args.noise = DEFAULT_NOISE_G
     base = build_scenario(args)
-    if base.seed is not None and base.seed < 0:
-        raise ValueError(f"{args.scenario}: [imu] seed = {base.seed} is not a seed (a whole number >= 0)")
     out = []
     for w in range(args.wheels):
         seed = base.seed

@@ -35,6 +35,17 @@ def leg_count(text: str) -> int:
     return n
 
 
+def seed_number(text: str) -> int:
+    """``--seed``: a whole number >= 0, as numpy's generators take (argparse type)."""
+    try:
+        n = int(text)
+    except ValueError:
+        n = -1
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a seed (a whole number >= 0)")
+    return n
+
+
 #: Log levels ``--log-level`` takes.
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
 #: How a message looks on stderr: time to the millisecond, level, logger, text.

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import argparse
 
-from slipest.cli.command import add_command
+from slipest.cli.command import add_command, seed_number
 import math
 import os
 import queue
@@ -75,17 +75,6 @@ def cycle_count(text: str) -> int:
     if not 1 <= n <= DEMO_CYCLES:
         raise argparse.ArgumentTypeError(f"{text!r} is not a number of leg cycles of the demo's drive "
                                          f"(1..{DEMO_CYCLES})")
-    return n
-
-
-def seed_number(text: str) -> int:
-    """``--seed``: a whole number >= 0, as the device's noise generator takes (argparse type)."""
-    try:
-        n = int(text)
-    except ValueError:
-        n = -1
-    if n < 0:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a seed (a whole number >= 0)")
     return n
 
 

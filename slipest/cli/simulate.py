@@ -28,7 +28,7 @@ import tomllib
 
 import numpy as np
 
-from slipest.cli.command import add_command, leg_count
+from slipest.cli.command import add_command, leg_count, seed_number
 from slipest.cli.output_paths import output_problem
 from slipest.model.params import StickSlipParams
 from slipest.model.scenario import Scenario
@@ -82,7 +82,7 @@ def add_scenario_arguments(
     g.add_argument("--cycles", type=int, default=10, help="number of leg cycles (default 10)")
     g.add_argument("--rate", type=float, default=None, help="IMU sample rate [Hz] (default 1000)")
     g.add_argument("--noise", type=float, default=None, help=noise_help)
-    g.add_argument("--seed", type=int, default=None, help=seed_help + " (an integer >= 0)")
+    g.add_argument("--seed", type=seed_number, default=None, help=seed_help + " (a whole number >= 0)")
     g.add_argument("--dt", type=float, default=None,
                    help="model integration step [s] (default 1e-4; at most the IMU period 1/rate)")
     g.add_argument(
@@ -131,8 +131,6 @@ def build_scenario(args: argparse.Namespace) -> Scenario:
         from slipest.model.effects import parse_effect_arg
 
         effects = [parse_effect_arg(text) for text in args.effect]
-    if args.seed is not None and args.seed < 0:
-        raise ValueError(f"--seed={args.seed}: the seed must be a non-negative integer")
     if args.scenario:
         try:
             with open(args.scenario, "rb") as fh:
