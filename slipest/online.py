@@ -489,6 +489,9 @@ class SlipEstimator:
             _check_options(Eq515Tracker, self._est_opts, self.method)
             # a rover model (slipest.rover) carries its own refitted Eq. 5.15 calibration
             calibration = self._calibration if self._calibration is not None else getattr(self._model, "eq515", None)
+            if calibration is None and hasattr(self._model, "eq515"):  # a rover model without one: not the shipped
+                raise ValueError(f"{getattr(self._model, 'source', 'the rover model')} holds no refitted Eq. 5.15 "
+                                 "calibration: use the default method, or re-run slipest calibrate")
             self.filter = Eq515Tracker.from_calibration(self.soil, self.use_reference, calibration, **self._est_opts)
             what = "the Eq. 5.15 calibration"
         else:

@@ -178,7 +178,6 @@ def test_a_rover_file_for_other_legs_or_another_version_is_refused_naming_it(tmp
                             ({"extra_cov": (-np.eye(20)).tolist()}, "extra_cov is not a covariance"),
                             ({"base_model": {"source": 5}}, "base_model.source must name its inverse model"),
                             ({"eq515": "x"}, "eq515 must hold the refitted Eq. 5.15 coefficients"),
-                            ({"eq515": None}, "eq515 must hold the refitted Eq. 5.15 coefficients"),
                             ({"eq515": {**doc["eq515"], "eq515": {**doc["eq515"]["eq515"], "amu": "x"}}},
                              r"eq515\.eq515\.amu is 'x', not a finite number"),
                             ({"eq515": {**doc["eq515"], "eq515": {**doc["eq515"]["eq515"], "rmse_end_to_end": 0}}},
@@ -204,6 +203,15 @@ def test_the_online_estimator_takes_a_rover_model_and_its_eq515(tmp_path):
     assert eq.filter.inv.amu == 1.0 and eq.filter.inv.slip_std == 0.05
     with pytest.raises(ValueError, match="4-leg"):
         SlipEstimator(n_legs=3, model=rover)
+    # a rover model without an Eq. 5.15 calibration (a null eq515 in its file) is refused by that method: it
+    # silently used the shipped coefficients
+    doc = json.loads(path.read_text())
+    doc["eq515"] = None
+    bare = tmp_path / "bare.json"
+    bare.write_text(json.dumps(doc))
+    assert SlipEstimator(n_legs=4, model=load_rover(bare)).filter is not None  # the default method takes it
+    with pytest.raises(ValueError, match=r"bare\.json holds no refitted Eq\. 5\.15 calibration"):
+        SlipEstimator(n_legs=4, method="eq515", soil={"kS": 900.0, "dphi": 0.2}, model=load_rover(bare))
 
 
 # ------------------------------------------------------------------ end to end, real files and processes

@@ -15,7 +15,8 @@ naming the file and what is wrong. Layout (units SI, features in
     base_model      {"source": "shipped" | a file path, "sha256": of the inverse-model file}
     discrepancy     the feature discrepancy (slipest.rover.discrepancy.Discrepancy.to_dict)
     extra_cov       (d, d) extra covariance of the features
-    eq515           the refitted Eq. 5.15 calibration ({"eq515": {...}, "model": {"params": {"nL", "omega"}}})
+    eq515           the refitted Eq. 5.15 calibration ({"eq515": {...}, "model": {"params": {"nL", "omega"}}}), or
+                    null: none (``--method eq515`` then refuses the file)
     disturbance     null, or the phase-locked az disturbance removed from the samples ({"phase": [rad], "az": [m/s^2]})
     interval_scale  factor (>= 1) on the estimator's standard deviations (absent: 1)
     angle_offset    encoder angle minus true leg angle [rad], subtracted from every theta sample (absent: 0)
@@ -182,6 +183,8 @@ def _check_sections(doc: dict, source: str) -> None:
     if (np.diag(arr) < 0).any() or not np.allclose(arr, arr.T, rtol=1e-6, atol=1e-12):
         raise RoverFileError(f"{source}: extra_cov is not a covariance (symmetric, non-negative diagonal)")
     eq = doc["eq515"]
+    if eq is None:  # a rover model made without Eq. 5.15 (the default method only; --method eq515 refuses it)
+        return
     coef = eq.get("eq515") if isinstance(eq, dict) else None
     if not isinstance(coef, dict):
         raise RoverFileError(f"{source}: eq515 must hold the refitted Eq. 5.15 coefficients "
