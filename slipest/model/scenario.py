@@ -105,27 +105,6 @@ def _array_of_tables(doc: dict, key: str) -> list:
     return list(value)
 
 
-def _effect_name(spec) -> str:
-    """The name of a checked effect specification, or a ValueError naming the effect, parameter and problem."""
-    from slipest.model.effects import normalise_spec
-
-    return normalise_spec(spec)["name"]
-
-
-def check_effects(effects) -> None:
-    """ValueError naming the problem when the effect specifications (``{"name": ..., params}`` dicts) are
-    not a valid list: an unknown effect or parameter, a value out of its bounds, an effect named twice."""
-    names = []
-    for j, spec in enumerate(effects or (), start=1):
-        try:
-            names.append(_effect_name(spec))
-        except ValueError as exc:
-            raise ValueError(f"effect {j}: {exc}") from None
-    dupes = sorted({n for n in names if names.count(n) > 1})
-    if dupes:
-        raise ValueError(f"effect(s) named more than once: {', '.join(dupes)} (each effect may be named once)")
-
-
 @dataclass(frozen=True)
 class Scenario:
     """A simulated run: per-cycle model parameters and IMU settings.
@@ -136,7 +115,7 @@ class Scenario:
     dt: model integration step [s], not coarser than the IMU period ``1 / rate``.
     effects: effect specifications (``{"name": ..., params...}`` dicts) of
         the sim-to-real catalog, applied by :mod:`slipest.model.stream`;
-        checked here (:func:`check_effects`).
+        checked here (:func:`slipest.model.effects.normalise_specs`).
     ValueError naming the field when one is not valid.
     """
 
@@ -168,7 +147,9 @@ class Scenario:
                 f"model step dt={self.dt:g} s is coarser than the IMU period 1/rate = {1.0 / self.rate:g} s "
                 f"(rate {self.rate:g} Hz): give a model step dt <= {1.0 / self.rate:g} s (--dt, or dt in a "
                 "scenario's [imu]) or a lower rate")
-        check_effects(self.effects)
+        from slipest.model.effects import normalise_specs
+
+        normalise_specs(self.effects)
 
     @property
     def n_legs(self) -> int:
@@ -287,14 +268,13 @@ class Scenario:
         for j, e in enumerate(effects, start=1):
             if "name" not in e:
                 raise ValueError(f"[[effect]] {j} without a name: {e}")
-            try:
-                _effect_name(e)
-            except ValueError as exc:
-                raise ValueError(f"[[effect]] {j}: {exc}") from None
+        from slipest.model.effects import normalise_specs
+
         try:
-            check_effects(effects)
-        except ValueError as exc:
-            raise ValueError(f"[[effect]]: {exc}") from None
+            normalise_specs(effects, label="[[effect]]")
+        except ValueError as exc:  # a bad effect names itself ("[[effect]] 2: ..."); a duplicate is the section's
+            text = str(exc)
+            raise ValueError(text if text.startswith("[[effect]] ") else f"[[effect]]: {text}") from None
         return cls.from_segments(segments, base=base, imu=imu, effects=effects)
 
     def metadata(self) -> dict[str, str]:

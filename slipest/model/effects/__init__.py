@@ -72,7 +72,8 @@ assert len(EFFECTS) == len(CATALOG), "effect names must be unique"
 
 __all__ = [
     "CATALOG", "EFFECTS", "ORDER", "Effect", "FitParam", "ParamSpec", "AngleOffset", "LowPass", "Saturation",
-    "TimeSkew", "TouchdownImpact", "impact_response", "compile_effects", "normalise_spec", "parse_effect_arg",
+    "TimeSkew", "TouchdownImpact", "impact_response", "compile_effects", "normalise_spec", "normalise_specs",
+    "parse_effect_arg",
     "catalog_text",
 ]
 
@@ -133,6 +134,22 @@ def parse_effect_arg(text: str) -> dict:
     return out
 
 
+def normalise_specs(specs, label: str = "effect") -> list[dict]:
+    """Each effect spec of ``specs`` normalised (:func:`normalise_spec`), in order; ValueError on a bad one
+    (``"<label> <j>: ..."``, ``j`` from 1) or on an effect named more than once."""
+    normalised = []
+    for j, spec in enumerate(specs or (), start=1):
+        try:
+            normalised.append(normalise_spec(dict(spec)))
+        except ValueError as exc:
+            raise ValueError(f"{label} {j}: {exc}") from None
+    names = [s["name"] for s in normalised]
+    dupes = sorted({n for n in names if names.count(n) > 1})
+    if dupes:
+        raise ValueError(f"effect(s) named more than once: {', '.join(dupes)} (each effect may be named once)")
+    return normalised
+
+
 def compile_effects(specs) -> tuple[Callable[[StickSlipParams], StickSlipParams], list]:
     """``(transform, stages)`` for a sequence of effect specs (dicts with ``name`` and parameters).
 
@@ -141,11 +158,7 @@ def compile_effects(specs) -> tuple[Callable[[StickSlipParams], StickSlipParams]
     the sensor stages in application order (continuous ones first). Each
     effect may be named once; missing parameters take the catalog defaults.
     """
-    normalised = [normalise_spec(dict(s)) for s in (specs or ())]
-    names = [s["name"] for s in normalised]
-    dupes = sorted({n for n in names if names.count(n) > 1})
-    if dupes:
-        raise ValueError(f"effect(s) named more than once: {', '.join(dupes)}")
+    normalised = normalise_specs(specs)
     normalised.sort(key=lambda s: ORDER.index(s["name"]))
     physics = [s for s in normalised if EFFECTS[s["name"]].kind == "physics"]
     stages = [EFFECTS[s["name"]].stage(s) for s in normalised if EFFECTS[s["name"]].kind != "physics"]
