@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
+import threading
 
 
 def add_command(sub, name: str, summary: str, doc: str) -> argparse.ArgumentParser:
@@ -44,6 +46,19 @@ def seed_number(text: str) -> int:
     if n < 0:
         raise argparse.ArgumentTypeError(f"{text!r} is not a seed (a whole number >= 0)")
     return n
+
+
+def interrupt_on_sigterm():
+    """Make SIGTERM raise KeyboardInterrupt, as Ctrl-C does, so a command stopped either way cleans up; returns
+    the handler to restore (``signal.signal(signal.SIGTERM, it)``), or None off the main thread, where no
+    handler can be set."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+
+    def _term(signum, frame):
+        raise KeyboardInterrupt
+
+    return signal.signal(signal.SIGTERM, _term)
 
 
 #: Log levels ``--log-level`` takes.

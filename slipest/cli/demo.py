@@ -31,8 +31,6 @@ summary compares them:
 from __future__ import annotations
 
 import argparse
-
-from slipest.cli.command import add_command, seed_number
 import math
 import os
 import queue
@@ -44,6 +42,8 @@ import threading
 import time
 
 import numpy as np
+
+from slipest.cli.command import add_command, interrupt_on_sigterm, seed_number
 
 #: The demo's drive: four stretches of 10 leg cycles (about 25 s each at real time).
 DEMO_SCENARIO = {
@@ -378,10 +378,7 @@ def run(args: argparse.Namespace) -> int:
     duration = n_cycles * period  # the last cycle driven is estimated at the end of the stream (finish)
     speed = args.speed
 
-    def _term(signum, frame):
-        raise KeyboardInterrupt
-
-    old_term = signal.signal(signal.SIGTERM, _term)  # while starting up; run_live handles it while streaming
+    old_term = interrupt_on_sigterm()  # while starting up; run_live handles it while streaming
     children: list[_Child] = []
     source = live = result = None
     display = _Display(scenario, out, side_by_side=rover is not None)
@@ -502,7 +499,8 @@ def run(args: argparse.Namespace) -> int:
             source.close()
         if view is not None:
             view.close()
-        signal.signal(signal.SIGTERM, old_term)
+        if old_term is not None:
+            signal.signal(signal.SIGTERM, old_term)
     try:
         report = None
         if os.path.exists(device_report_path):

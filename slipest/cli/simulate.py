@@ -23,12 +23,11 @@ import signal
 import stat
 import sys
 import tempfile
-import threading
 import tomllib
 
 import numpy as np
 
-from slipest.cli.command import add_command, leg_count, seed_number
+from slipest.cli.command import add_command, interrupt_on_sigterm, leg_count, seed_number
 from slipest.cli.output_paths import output_problem
 from slipest.model.params import StickSlipParams
 from slipest.model.scenario import Scenario
@@ -175,18 +174,6 @@ def build_scenario(args: argparse.Namespace) -> Scenario:
     return scenario
 
 
-def _interrupt_on_sigterm():
-    """Make SIGTERM raise KeyboardInterrupt (as Ctrl-C does), so a run stopped either way cleans up; returns
-    what to restore (None when this is not the main thread, where no handler can be set)."""
-    if threading.current_thread() is not threading.main_thread():
-        return None
-
-    def _term(signum, frame):
-        raise KeyboardInterrupt
-
-    return signal.signal(signal.SIGTERM, _term)
-
-
 def _stream_log(scenario: Scenario, target) -> None:
     """Simulate ``scenario`` into ``target`` (a path or an open stream) as a log, chunk by chunk."""
     from slipest.io.log_csv import LogWriter
@@ -223,7 +210,7 @@ def _write_file(scenario: Scenario, output: str) -> None:
             raise SystemExit(f"slipest simulate: cannot write {output}: {exc.strerror or exc}") from None
         return
     kept = f"{output} left as it was" if mode is not None else f"no {output} made"
-    restore = _interrupt_on_sigterm()
+    restore = interrupt_on_sigterm()
     tmp = None
     done = False
     try:
