@@ -58,6 +58,13 @@ def cycle_rows(t, az, theta, slip=None, n_legs: int = 4, model=None) -> dict:
             "slip_std": np.array([r[4] for r in rows], dtype=float), "flagged": flagged, "hints": dict(est.hints)}
 
 
+def sample_rate(t) -> float:
+    """A log's IMU sample rate [Hz]: 1 over the median of its positive finite time steps (NaN without one)."""
+    dt = np.diff(np.asarray(t, dtype=float))
+    dt = dt[np.isfinite(dt) & (dt > 0)]
+    return 1.0 / float(np.median(dt)) if dt.size else float("nan")
+
+
 @dataclass
 class TestbedLog:
     """One testbed log's estimated cycles with a known slip.
@@ -84,10 +91,8 @@ class TestbedLog:
         r = cycle_rows(t, az, theta, slip, n_legs, model)
         keep = np.isfinite(r["slip_ref"])
         n_all = len(r["cycle"]) + sum(r["flagged"].values())
-        dt = np.diff(np.asarray(t, dtype=float))
-        dt = dt[np.isfinite(dt) & (dt > 0)]
-        rate = 1.0 / float(np.median(dt)) if dt.size else float("nan")
-        log = cls(name, r["features"][keep], r["slip_ref"][keep], r["cycle"][keep], r["flagged"], n_all, rate)
+        log = cls(name, r["features"][keep], r["slip_ref"][keep], r["cycle"][keep], r["flagged"], n_all,
+                  sample_rate(t))
         if len(log) < 8:
             why = ", ".join(f"{k} {v}" for k, v in sorted(r["flagged"].items())) or "none flagged"
             hint = r["hints"].get("units") or r["hints"].get("degrees")
@@ -144,4 +149,4 @@ def finite_rows(features, columns) -> np.ndarray:
     return np.all(np.isfinite(np.asarray(features)[:, columns]), axis=1)
 
 
-__all__ = ["MIN_HELDOUT_LEVELS", "MIN_SLIP_RANGE", "TestbedLog", "cycle_rows", "finite_rows"]
+__all__ = ["MIN_HELDOUT_LEVELS", "MIN_SLIP_RANGE", "TestbedLog", "cycle_rows", "finite_rows", "sample_rate"]
