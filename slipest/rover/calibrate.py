@@ -430,13 +430,16 @@ def _testbed_layer(model: RoverSurrogate, logs, options: CalibrateOptions, n_leg
             others = [o for k, o in enumerate(logs) if k != j]
             extra, _ = fit_testbed_discrepancy(model, others, options.testbed_degree)
             heldout.append((extra, None))
-        how = "leave one run out"
+        how, validated = "leave one run out", True
     else:
         held, train = _heldout_split(logs)
         extra, _ = fit_testbed_discrepancy(model, train, options.testbed_degree)
         heldout.append((extra, held[0]))
+        # held-out cycles that share their slip levels with the fit's do not test it (a polynomial through 3
+        # levels fits them exactly): such a correction is not used
         n_levels = len(logs[0].levels())
-        how = ("held-out slip levels" if n_levels >= MIN_HELDOUT_LEVELS else
+        validated = n_levels >= MIN_HELDOUT_LEVELS
+        how = ("held-out slip levels" if validated else
                f"not validated: one log with {n_levels} slip level(s), a check needs {MIN_HELDOUT_LEVELS} or more "
                "(or two logs)")
     for lg, (extra, mask) in zip(logs, heldout):
@@ -444,9 +447,6 @@ def _testbed_layer(model: RoverSurrogate, logs, options: CalibrateOptions, n_leg
         with_scores.append(blind_score(with_discrepancy(model, extra), lg, options.blind_start, n_legs, mask))
     spread = _slip_spread(model)
     before, after = _choice_rmse(base_scores, spread), _choice_rmse(with_scores, spread)
-    # held-out cycles that share their slip levels with the fit's do not test it (a polynomial through 3 levels
-    # fits them exactly): such a correction is not used
-    validated = len(logs) >= 2 or len(logs[0].levels()) >= MIN_HELDOUT_LEVELS
     used = bool(validated and after < (1.0 - 0.5 * MIN_GAIN) * before)
     extra, soils = fit_testbed_discrepancy(model, logs, options.testbed_degree)
     return {"used": used, "how": how, "heldout_without": _figures(base_scores), "heldout_with": _figures(with_scores),
