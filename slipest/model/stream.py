@@ -180,7 +180,8 @@ def iter_stream(scenario: Scenario, chunk_cycles: int = 32) -> Iterator[SampleCh
     ext = [cycles[0]] * n_lead + cycles  # lead-in cycles, then the run's
     slips = np.array([scenario.cycles[0].slip] * n_lead + [c.slip for c in scenario.cycles])
     schedule = _Schedule(ext)
-    start = schedule.start - schedule.start[n_lead]  # the run's time: 0 at its first cycle's start
+    t0 = schedule.start[n_lead]  # the schedule's time of the run's start
+    start = schedule.start - t0  # the run's time: 0 at its first cycle's start
     n_legs = cycles[0].nL
     dt = scenario.dt
     rate = scenario.rate
@@ -195,8 +196,9 @@ def iter_stream(scenario: Scenario, chunk_cycles: int = 32) -> Iterator[SampleCh
         # continuous signal on the model grid covering [start e0, start e1)
         n = np.arange(math.ceil(start[e0] / dt - 1e-9), math.ceil(start[e1] / dt - 1e-9))
         t_grid = n * dt
-        k_grid = schedule.cycle_of(t_grid + schedule.start[n_lead], e0, e1)
-        phi_grid = schedule.phase(t_grid + schedule.start[n_lead], k_grid)
+        on_schedule = t_grid + t0 if n_lead else t_grid
+        k_grid = schedule.cycle_of(on_schedule, e0, e1)
+        phi_grid = schedule.phase(on_schedule, k_grid)
         az_grid = _hub_acceleration(k_grid, phi_grid, e0, schedule, ext[e0:e1], batch) + cycles[0].g
         theta_grid = 2 * math.pi * (k_grid - n_lead) / n_legs + phi_grid
         az_grid, _ = run_stages(stages, "continuous", t_grid, az_grid, theta_grid, rng)
@@ -204,8 +206,9 @@ def iter_stream(scenario: Scenario, chunk_cycles: int = 32) -> Iterator[SampleCh
         s = np.arange(math.ceil(start[e0] * rate - 1e-9), math.ceil(start[e1] * rate - 1e-9))
         t = s / rate
         az = np.interp(t, t_grid, az_grid)
-        k = schedule.cycle_of(t + schedule.start[n_lead], e0, e1)
-        theta = 2 * math.pi * (k - n_lead) / n_legs + schedule.phase(t + schedule.start[n_lead], k)
+        on_schedule = t + t0 if n_lead else t
+        k = schedule.cycle_of(on_schedule, e0, e1)
+        theta = 2 * math.pi * (k - n_lead) / n_legs + schedule.phase(on_schedule, k)
         az, theta = run_stages(stages, "sampled", t, az, theta, rng)
         run = k >= n_lead
         yield SampleChunk(t=t[run], az=az[run], theta=theta[run], slip=slips[k[run]], cycle=k[run] - n_lead)
