@@ -186,12 +186,27 @@ def _stream_log(scenario: Scenario, target) -> None:
             writer.flush()
 
 
+def _write_direct(scenario: Scenario, target) -> None:
+    """Simulate straight into ``target`` (stdout, a device or a pipe: streamed, what is written stays written);
+    a model failure, a scenario the stages refuse or an OSError becomes SystemExit with the message."""
+    from slipest.model.stance import ModelFailure
+
+    try:
+        _stream_log(scenario, target)
+    except (ModelFailure, ValueError) as exc:
+        raise SystemExit(f"slipest simulate: {exc}") from None
+    except OSError as exc:
+        if target is sys.stdout:  # a closed pipe (| head): the command line's own quiet handling
+            raise
+        raise SystemExit(f"slipest simulate: cannot write {target}: {exc.strerror or exc}") from None
+
+
 def _write_file(scenario: Scenario, output: str) -> None:
     """Simulate into a temporary file beside ``output`` and move it onto ``output`` once whole (a regular file
-    or none; anything else, e.g. /dev/null, is written directly). On any error or interruption (Ctrl-C,
-    SIGTERM: KeyboardInterrupt) the temporary file is removed, ``output`` is left as it was and stderr says
-    so; a model failure, a scenario the stages refuse or an OSError becomes SystemExit with the message,
-    anything else goes on."""
+    or none; anything else, e.g. /dev/null, is written directly: :func:`_write_direct`). On any error or
+    interruption (Ctrl-C, SIGTERM: KeyboardInterrupt) the temporary file is removed, ``output`` is left as it
+    was and stderr says so; a model failure, a scenario the stages refuse or an OSError becomes SystemExit
+    with the message, anything else goes on."""
     from slipest.model.stance import ModelFailure
 
     dest = os.path.realpath(output)  # through a symbolic link: the file it names is replaced, not the link
@@ -202,12 +217,7 @@ def _write_file(scenario: Scenario, output: str) -> None:
     except OSError as exc:
         raise SystemExit(f"slipest simulate: cannot write {output}: {exc.strerror or exc}") from None
     if mode is not None and not stat.S_ISREG(mode):  # a device or a pipe: nothing to replace
-        try:
-            _stream_log(scenario, output)
-        except (ModelFailure, ValueError) as exc:
-            raise SystemExit(f"slipest simulate: {exc}") from None
-        except OSError as exc:
-            raise SystemExit(f"slipest simulate: cannot write {output}: {exc.strerror or exc}") from None
+        _write_direct(scenario, output)
         return
     kept = f"{output} left as it was" if mode is not None else f"no {output} made"
     restore = interrupt_on_sigterm()
@@ -257,8 +267,6 @@ def _write_file(scenario: Scenario, output: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from slipest.model.stance import ModelFailure
-
     try:
         scenario = build_scenario(args)
     except ValueError as exc:
@@ -271,11 +279,8 @@ def run(args: argparse.Namespace) -> int:
     if target is not sys.stdout and os.path.exists(target) and not (args.overwrite or _simulated(target)):
         raise SystemExit(f"slipest simulate: {target} exists and is not a simulated log: use --overwrite to "
                          "replace it")
-    if target is sys.stdout:  # streamed: what is written stays written
-        try:
-            _stream_log(scenario, target)
-        except (ModelFailure, ValueError) as exc:
-            raise SystemExit(f"slipest simulate: {exc}") from None
+    if target is sys.stdout:
+        _write_direct(scenario, target)
         return 0
     _write_file(scenario, target)
     print(f"wrote {len(scenario.cycles)} leg cycles to {args.output}", file=sys.stderr)
