@@ -7,6 +7,10 @@ estimate, and what the stance measure costs.
    rad/s; soil over the domain; 14 cycles of random slip each) through
    ``SlipEstimator``: cycles it calls a burst (``cycles_noise_burst``; every
    one a false alarm, the data are clean).
+   With ``--effect-seed S``, also one rover of each kind of
+   ``tools/bench_calibration.py`` (every catalog effect, the variants and the
+   out-of-catalog effects, drawn with seed ``S``), three 25-cycle drives
+   each, 1 kHz, 0.01 g: bursts called on data carrying a sim-to-real effect.
 2. Bursts: one 16-cycle drive at slip 0.3, 1 kHz, 0.01 g; cycle 8 gets white
    noise of 0.1 and 0.2 g on its stance only, then on the whole cycle, four
    draws each: the cycle's slip error in its own standard deviations (``z``),
@@ -16,7 +20,7 @@ estimate, and what the stance measure costs.
    one 1 kHz cycle at 0.63 rad/s and one of 9000 samples.
 
     python tools/check_noise_bursts.py                # 40 drives, about 2 min
-    python tools/check_noise_bursts.py --seed 3 --drives 150
+    python tools/check_noise_bursts.py --seed 3 --drives 150 --effect-seed 31
 """
 
 from __future__ import annotations
@@ -55,6 +59,33 @@ def false_alarms(drives: int, seed: int) -> tuple[int, int]:
         estimated += c["cycles_ok"] + c["cycles_repaired"]
         bursts += c["cycles_noise_burst"]
     return estimated, bursts
+
+
+def effect_alarms(seed: int) -> list[tuple]:
+    """(rover kind, cycles, cycles called a burst) of three drives of each ``bench_calibration`` rover kind."""
+    import os
+    from dataclasses import replace
+
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    import bench_calibration as bc
+
+    from slipest.diagnosis.synth import simulate_run
+
+    rng = np.random.default_rng(seed)
+    out = []
+    for truth in tqdm(bc.TRUTHS, desc="effect rovers", file=sys.stderr):
+        effects, params, _, drives, _ = bc.draw_rover(truth, rng)
+        n = called = 0
+        for soil in drives:
+            sc = bc.drive_scenario(rng, soil)
+            run = simulate_run(replace(sc, effects=effects), () if truth in bc.ORDER else bc.stages_of(truth, params))
+            est = SlipEstimator(n_legs=4)
+            est.push_many(run["t"], run["az"], run["theta"])
+            est.finish()
+            n += est.counters["cycles"]
+            called += est.counters["cycles_noise_burst"]
+        out.append((truth, n, called))
+    return out
 
 
 def bursts() -> list[tuple]:
@@ -100,9 +131,15 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--drives", type=int, default=40)
     ap.add_argument("--seed", type=int, default=2)
+    ap.add_argument("--effect-seed", type=int, default=None, help="also drives of every effect rover kind")
     args = ap.parse_args(argv)
     estimated, alarms = false_alarms(args.drives, args.seed)
     print(f"clean drives: {args.drives}, {estimated} cycles estimated, {alarms} called a burst (false alarms)")
+    if args.effect_seed is not None:
+        rows = effect_alarms(args.effect_seed)
+        for truth, n, called in rows:
+            print(f"  effect rover {truth:18s}: {n} cycles, {called} called a burst")
+        print(f"effect drives: {sum(r[1] for r in rows)} cycles, {sum(r[2] for r in rows)} called a burst")
     print("burst on cycle 8 (slip 0.3, 1 kHz, 0.01 g): where, level, draw, z = error / std, reported noise, counted")
     for where, level, draw, z, noise, counted in bursts():
         print(f"  {where:12s} {level:.1f} g  draw {draw}: z {z:+5.2f}  noise {noise:.3f} g  bursts counted {counted}")
