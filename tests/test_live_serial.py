@@ -91,11 +91,13 @@ def test_a_stuck_sensor_is_never_handed_on_and_normal_data_is_not_delayed():
 
 
 #: What can happen to a device's stream (see frames_with_events).
-EVENTS = ("run", "lose", "dup", "swap", "restart", "reboot", "stuck", "burst", "stall", "jump", "late", "early")
+EVENTS = ("run", "lose", "dup", "swap", "restart", "reboot", "stuck", "repeat", "burst", "stall", "jump", "late",
+          "early")
 #: How a link carries the frames: WheelStream options, and whether arrival times are given.
 LINKS = {"serial": ({}, True), "serial, no arrival times": ({}, False),
          "can": ({"seq_modulus": 256, "time_modulus": 0.65536}, True),
-         "can, no counter": ({"seq_modulus": 0, "time_modulus": 0.65536}, True)}
+         "can, no counter": ({"seq_modulus": 0, "time_modulus": 0.65536}, True),
+         "serial, stuck at 4 samples": ({"stuck_samples": 4}, True)}
 
 
 def frames_with_events(events, wrapped: bool, seed: int):
@@ -104,9 +106,10 @@ def frames_with_events(events, wrapped: bool, seed: int):
     Starts with 200 plain frames at 1 kHz, then each (event, k): ``run`` k plain frames; ``lose`` k
     frames never sent; ``dup`` the last frame again; ``swap`` two frames in swapped order; ``restart``
     the counter back to k; ``reboot`` the counter back to 0 and the device clock to k ms; ``stuck`` k
-    frames with the same az; ``burst`` k frames arriving together (one intake, up to 0.4 s late);
-    ``stall`` the same, 0.3-0.7 s late (longer than half CAN's time period); ``jump`` an angle step of
-    2 rad; ``late`` / ``early`` a frame 1.7 / 0.4 periods after the last.
+    frames with the same az; ``repeat`` k % 14 + 1 frames with the same az (around the stuck length: a
+    short repeat is held and released, a long one is stuck); ``burst`` k frames arriving together (one
+    intake, up to 0.4 s late); ``stall`` the same, 0.3-0.7 s late (longer than half CAN's time period);
+    ``jump`` an angle step of 2 rad; ``late`` / ``early`` a frame 1.7 / 0.4 periods after the last.
     ``wrapped``: an 8-bit counter and times modulo 0.65536 s (CAN), else 16 bits and absolute (serial)."""
     rng = np.random.default_rng(seed)
     out = []
@@ -145,9 +148,9 @@ def frames_with_events(events, wrapped: bool, seed: int):
             dev["host"] += dev["t"] - k * 1e-3
             dev["seq"], dev["t"] = -1, k * 1e-3 - 1e-3
             out.append(make())
-        elif event == "stuck":
+        elif event in ("stuck", "repeat"):
             dev["az"] = 9.81 + float(rng.normal(0, 0.1))
-            out += [make() for _ in range(k)]
+            out += [make() for _ in range(k if event == "stuck" else k % 14 + 1)]
             dev["az"] = None
         elif event in ("burst", "stall"):
             dev["intake"] = dev["t"] + dev["host"] + k * 1e-3 + (0.302 if event == "stall" else 0.002)

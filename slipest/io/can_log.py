@@ -4,8 +4,9 @@ A rover team records its bus with ``python -m can.logger`` or ``candump -l``.
 :class:`CanLogFile` reads such a file with :func:`can.LogReader` (by its
 suffix: ``.asc``, ``.blf``, ``.csv``, ``.db``, ``.log`` (candump -l),
 ``.mf4`` (with asammdf), ``.trc``, and each of them gzipped, ``.asc.gz``...),
-decodes each frame with the DBC (:class:`~slipest.io.can_messages.CanDecoder`:
-unknown IDs, error frames and bad frames are counted and skipped) and yields
+decodes its frames with the DBC, a chunk at a time
+(:meth:`~slipest.io.can_messages.CanDecoder.decode_many`: unknown IDs, error
+frames and bad frames are counted and skipped) and yields
 :class:`~slipest.io.source.SourceBatch` es as
 :class:`~slipest.io.can_source.CanSource` does live, the frame's recorded
 timestamp standing for its arrival time (``intake``).  It declares the same
@@ -16,7 +17,8 @@ estimates the live run gave on the same frames.
 
 A file python-can cannot read, or a frame it cannot parse, raises
 :class:`~slipest.io.log_csv.LogFormatError` naming the file and the frame's
-1-based index.  Memory: one batch at a time (``batch_frames`` frames).
+1-based index (a bad frame after the frames before it are handed on).
+Memory: one batch at a time (``batch_frames`` frames).
 """
 
 from __future__ import annotations
@@ -103,24 +105,40 @@ class CanLogFile:
 
     def batches(self) -> Iterator[list[SourceBatch]]:
         """Lists of up to ``batch_frames`` batches, one per frame of ours (in file order), each with
-        its recorded timestamp as ``intake``."""
-        decode = self.decoder.decode
+        its recorded timestamp as ``intake``.  A frame python-can cannot parse raises
+        :class:`LogFormatError` naming it, after the batches of every frame before it."""
         c = self.c
         out: list[SourceBatch] = []
-        for msg in self._messages():
-            c["frames"] += 1
-            imu: list = []
-            refs: list = []
-            if not add_record(decode(msg), imu, refs):
-                c["references_invalid"] += 1
-            if not (imu or refs):
-                continue
-            ts = float(msg.timestamp)
-            if self.first_timestamp is None:
-                self.first_timestamp = ts
-            out.append(SourceBatch(ts, imu, refs))
-            if len(out) >= self.batch_frames:
-                yield out
-                out = []
+        chunk: list[can.Message] = []
+        messages = self._messages()
+        error = None
+        while error is None:
+            try:
+                for msg in messages:  # the frames are decoded together (decode_many), a chunk at a time
+                    c["frames"] += 1
+                    chunk.append(msg)
+                    if len(chunk) >= self.batch_frames:
+                        break
+            except LogFormatError as exc:  # the frames before the one python-can could not parse go on first
+                error = exc
+            if not chunk:
+                break
+            for msg, rec in zip(chunk, self.decoder.decode_many(chunk)):
+                imu: list = []
+                refs: list = []
+                if not add_record(rec, imu, refs):
+                    c["references_invalid"] += 1
+                if not (imu or refs):
+                    continue
+                ts = float(msg.timestamp)
+                if self.first_timestamp is None:
+                    self.first_timestamp = ts
+                out.append(SourceBatch(ts, imu, refs))
+                if len(out) >= self.batch_frames:
+                    yield out
+                    out = []
+            chunk = []
         if out:
             yield out
+        if error is not None:
+            raise error

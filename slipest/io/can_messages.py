@@ -56,6 +56,7 @@ from typing import Union
 
 import can
 import cantools
+import numpy as np
 
 __all__ = [
     "N_WHEELS",
@@ -235,6 +236,31 @@ def _check_range(message_name: str, signal) -> None:
                                f"[{signal.minimum}|{signal.maximum}] does not fit {signal.length} bits")
 
 
+@functools.lru_cache(maxsize=1)
+def _imu_layout() -> tuple | None:
+    """ImuSample's signals as ``(name, start, length, signed, scale, offset)`` from the DBC, for
+    :meth:`CanDecoder.decode_many` to decode 8-byte frames as 64-bit little-endian words (``scale``
+    None: an integer signal, as cantools gives it).  None when the DBC has a signal that is not
+    little-endian, a float, or with another conversion than cantools' identity and linear ones:
+    then every frame goes through cantools."""
+    message = _table()[1][(IMU_SAMPLE, 0)].message
+    if message.length != 8:
+        return None
+    layout = []
+    for signal in message.signals:
+        conv = signal.conversion
+        if signal.byte_order != "little_endian" or conv.is_float:
+            return None
+        if type(conv).__name__ == "IdentityConversion":
+            scale = offset = None
+        elif type(conv).__name__ == "LinearConversion":
+            scale, offset = conv.scale, conv.offset
+        else:
+            return None
+        layout.append((signal.name, signal.start, signal.length, signal.is_signed, scale, offset))
+    return tuple(layout)
+
+
 def base_id(kind: str) -> int:
     """Arbitration ID of wheel 0 for a message kind (``IMU_SAMPLE``...)."""
     return _table()[1][(kind, 0)].message.frame_id
@@ -369,6 +395,8 @@ def encode_slip_reference(wheel: int, counter: int, slip: float, t: float = 0.0)
 # ---------------------------------------------------------------------------
 
 _NAN = float("nan")
+#: :meth:`CanDecoder.decode_many` decodes ImuSample frames with numpy from this many frames in a call.
+_MANY_MIN = 16
 
 
 def decode(msg: can.Message) -> CanRecord | None:
@@ -456,6 +484,56 @@ class CanDecoder:
         if rec is None:
             c["unknown_id"] += 1
             return None
+        return self._count(rec)
+
+    def decode_many(self, msgs) -> list[CanRecord | None]:
+        """``[self.decode(m) for m in msgs]``, the same records, counters and ``last_error``, with the
+        ImuSample frames of a long list (a log's) decoded together with numpy from the DBC's bit
+        layout (about a tenth of cantools' time per frame); other frames, and ImuSample frames whose
+        length or Wheel signal is wrong, go through :meth:`decode`."""
+        layout = _imu_layout()
+        if layout is None or len(msgs) < _MANY_MIN:
+            return [self.decode(m) for m in msgs]
+        by_id = _table()[0]
+        at, data, wheels = [], [], []
+        for i, m in enumerate(msgs):
+            if m.is_extended_id or m.is_remote_frame or m.is_error_frame:
+                continue
+            entry = by_id.get(m.arbitration_id)
+            if entry is not None and entry.kind == IMU_SAMPLE and len(m.data) == 8:
+                at.append(i)
+                data.append(bytes(m.data))
+                wheels.append(entry.wheel)
+        if not at:
+            return [self.decode(m) for m in msgs]
+        words = np.frombuffer(b"".join(data), "<u8")
+        s = {}
+        for name, start, length, signed, scale, offset in layout:
+            raw = ((words >> np.uint64(start)) & np.uint64((1 << length) - 1)).astype(np.int64)
+            if signed:
+                raw = np.where(raw >= 1 << (length - 1), raw - (1 << length), raw)
+            s[name] = (raw if scale is None else raw * scale + offset).tolist()
+        az = [_NAN if bad else v for v, bad in zip(s["Az"], s["AzInvalid"])]
+        theta = [_NAN if bad else v for v, bad in zip(s["Theta"], s["ThetaInvalid"])]
+        out: list[CanRecord | None] = [None] * len(msgs)
+        done = 0
+        count = self._count
+        for k, i in enumerate(at):
+            for j in range(done, i):  # the frames before it that are not plain ImuSample frames
+                out[j] = self.decode(msgs[j])
+            done = i + 1
+            if s["Wheel"][k] != wheels[k]:  # the ID's wheel disagrees with the signal: decode says so
+                out[i] = self.decode(msgs[i])
+                continue
+            out[i] = count(ImuMessage(wheels[k], s["Counter"][k], az[k], theta[k], s["TimeMod"][k],
+                                      bool(s["AzSaturated"][k]), float(msgs[i].timestamp or 0.0)))
+        for j in range(done, len(msgs)):
+            out[j] = self.decode(msgs[j])
+        return out
+
+    def _count(self, rec: CanRecord) -> CanRecord:
+        """Count a decoded record (ok, counter gaps, saturated, invalid) and return it."""
+        c = self._c
         c["ok"] += 1
         key = (rec.kind, rec.wheel)
         last = self._last.get(key)

@@ -104,7 +104,8 @@ The output depends only on the frames and their order, not on how they are
 split between calls of :meth:`WheelStream.add`.  A call of 32 frames or more
 (a burst after a stall, a device faster than real time) applies the same
 rules with numpy to runs of plain frames (one counter step and about one
-sample period apart, angle steps under 1 rad, ``az`` not repeating), to the
+sample period apart, angle steps under 1 rad, ``az`` not repeating, or
+repeating too few times to be stuck and released within the run), to the
 bit the same samples, counters and state (``tests/test_live_serial.py``
 states it as a property); the other frames go one by one.  Counters:
 :meth:`WheelStream.counters`.
@@ -136,6 +137,8 @@ _NAN = math.nan
 _FIELDS = ("t", "az", "theta", "slip", "filled", "intake")
 #: Calls with at least this many frames try the vectorised run of plain frames (bursts after a stall).
 _RUN_MIN = 32
+#: Most frames one vectorised run looks at (its cost grows with the frames it looks at, not those it takes).
+_RUN_MAX = 2048
 
 
 @dataclass
@@ -301,13 +304,16 @@ class WheelStream:
                 np.asarray(azs, np.float64), np.asarray(ths, np.float64), np.asarray(intakes, np.float64))
         parts = []
         i = 0
+        odd = 1  # frames to take one by one after a run stops: 1 (the odd frame), doubling while runs fail at once
         while i < n:
-            taken = self._run(*(c[i:] for c in cols)) if n - i >= _RUN_MIN else None
+            taken = self._run(*(c[i:i + _RUN_MAX] for c in cols)) if n - i >= _RUN_MIN else None
             if taken is not None:
                 parts.append(taken)
                 i += len(taken)
+                odd = 1
                 continue
-            stop = n if n - i < 2 * _RUN_MIN else i + _RUN_MIN  # frame by frame past the odd one
+            stop = n if n - i < 2 * _RUN_MIN else i + odd  # frame by frame past the odd one
+            odd = min(2 * odd, _RUN_MIN)
             out = _Rows()
             for k in range(i, stop):
                 frame(seqs[k], float(ts[k]), float(azs[k]), float(ths[k]), float(intakes[k]), out)
@@ -388,7 +394,9 @@ class WheelStream:
     def _run(self, seq, traw, az, theta, intake) -> WheelSamples | None:
         """The rules for a run of plain frames at the start of these arrays, vectorised: each frame
         follows the last accepted one by one counter step and about one sample period, with an angle
-        step under 1 rad and an ``az`` that does not repeat.  Gives exactly (to the bit, state and
+        step under 1 rad, and its ``az`` does not repeat, or repeats the frames before it fewer times
+        than a stuck run needs and a later frame of the run breaks the repeats (held, then released
+        unchanged within the run, as :meth:`_sample` does).  Gives exactly (to the bit, state and
         counters included) what :meth:`_frame` gives for those frames one by one; returns their
         samples, or None when the first frame is not plain."""
         period, omega = self._period, self._omega
@@ -413,27 +421,44 @@ class WheelStream:
         th = theta + _TWO_PI * branch
         th_all = np.concatenate(([last_th], th))
         dth = np.diff(th_all)
-        periods, omegas = [period], [omega]  # before each frame, then after the last (what _learn computes)
-        with np.errstate(divide="ignore", invalid="ignore"):  # dt = 0 (a duplicate): not plain, checked below
-            rate = dth / dt
-        for d, r in zip(dt.tolist(), rate.tolist()):
+        # first the rules that need neither the learnt period nor the leg speed, over all the frames
+        with np.errstate(invalid="ignore"):
+            ok = (dt > 0) & (np.abs(dth) < 1.0)
+            if self.seq_modulus:
+                ok &= np.mod(np.diff(seq, prepend=self._last_seq), self.seq_modulus) == 1
+            if m:  # _unwrap_time picks k = 0 at its first candidate
+                arrival = np.diff(intake, prepend=self._last_intake) * self.time_scale
+                ok &= np.isfinite(intake) & (np.abs(base - arrival) / m <= (base + m - arrival) / m)
+        repeats = None
+        if self._stuck_on:
+            repeats = az == np.concatenate(([self._prev_az], az[:-1]))  # NaN never repeats
+            if repeats.any():
+                # the frames a repeat run started from (its last non-repeating one; -1: the one before these)
+                start = np.maximum.accumulate(np.where(repeats, -1, np.arange(az.size)))
+                shortest = self.stuck_samples if self.stuck_samples is not None else STUCK_MIN_SAMPLES
+                # a run of h repeats is stuck once h + 1 reaches the stuck length: at most shortest - 2 are held
+                ok &= ~repeats | (np.arange(az.size) - start <= shortest - 2)
+            else:
+                repeats = None
+        n = int(ok.size if ok.all() else np.argmin(ok))
+        if n == 0:
+            return None
+        # then the rules that need them, over the frames that passed, with what _learn computes frame by frame
+        dt, dth = dt[:n], dth[:n]
+        periods, omegas = [period], [omega]  # before each frame, then after the last
+        for d, r in zip(dt.tolist(), (dth / dt).tolist()):
             period = 0.9 * period + 0.1 * d
             omega = 0.8 * omega + 0.2 * r
             periods.append(period)
             omegas.append(omega)
         p = np.array(periods[:-1])
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ok = (dt > 0) & (np.round(dt / p) == 1) & (np.abs(dth) < 1.0)
-            ok &= np.round((th_all[:-1] + np.array(omegas[:-1]) * dt - theta) / _TWO_PI) == branch
-            if self.seq_modulus:
-                ok &= np.mod(np.diff(seq, prepend=self._last_seq), self.seq_modulus) == 1
-            if m:  # _unwrap_time picks k = 0 at its first candidate
-                arrival = np.diff(intake, prepend=self._last_intake) * self.time_scale
-                ok &= np.isfinite(intake) & (np.round(base / p) == 1)
-                ok &= np.abs(base - arrival) / m <= (base + m - arrival) / m
-            if self._stuck_on:
-                ok &= az != np.concatenate(([self._prev_az], az[:-1]))
+        ok = (np.round(dt / p) == 1) & (np.round((th_all[:n] + np.array(omegas[:-1]) * dt - theta[:n]) / _TWO_PI)
+                                        == branch[:n])
+        if m:
+            ok &= np.round(base[:n] / p) == 1
         n = int(ok.size if ok.all() else np.argmin(ok))
+        if repeats is not None and n and repeats[n - 1]:  # a repeat run not broken within the run: left out
+            n = int(start[n - 1]) + 1
         if n == 0:
             return None
         self._period, self._omega = periods[n], omegas[n]
