@@ -137,22 +137,22 @@ class CanSource(Source):
         if msg is None:
             return
         intake = time.monotonic()
-        decode = self.decoder.decode
         listeners = self._listeners
-        imu = []
-        refs = []
-        n = 0
+        msgs = []
         while msg is not None:
             for listener in listeners:
                 listener.on_message_received(msg)
-            with self._lock:
-                rec = decode(msg)
-            if not add_record(rec, imu, refs):
-                self.c["references_invalid"] += 1
-            n += 1
-            if n >= self.max_batch:
+            msgs.append(msg)
+            if len(msgs) >= self.max_batch:
                 break
             msg = bus.recv(0)
+        with self._lock:
+            recs = self.decoder.decode_many(msgs)  # a burst's ImuSample frames decoded together
+        imu = []
+        refs = []
+        for rec in recs:
+            if not add_record(rec, imu, refs):
+                self.c["references_invalid"] += 1
         if imu or refs:
             self._put(SourceBatch(intake, imu, refs))
 
