@@ -22,6 +22,7 @@ import numpy as np
 
 from slipest.io.log_csv import LogFormatError, read_log
 from slipest.offline.diagnose import DiagnoseOptions, geometry_of
+from slipest.offline.reference_slip import check_reference_slip
 
 __all__ = ["calibrate_logs", "write_rover"]
 
@@ -44,7 +45,7 @@ def calibrate_logs(paths, options=None, *, legs: int | None = None, MH: float | 
         if log.slip is None:
             raise LogFormatError("no 'slip' column: calibration needs the slip of every leg cycle (a testbed's "
                                  "reference, visual odometry)", p)
-        _check_slip(log, p)
+        check_reference_slip(log.slip, log.t, p)
         logs.append(log)
     _check_distinct(paths)
     _check_rates(logs, paths)
@@ -62,20 +63,6 @@ def calibrate_logs(paths, options=None, *, legs: int | None = None, MH: float | 
 
 #: Logs whose IMU rates differ by more than this fraction are not one rover's IMU setting.
 RATE_TOLERANCE = 0.02
-
-
-def _check_slip(log, path: str) -> None:
-    """LogFormatError unless every finite reference slip lies in ``[0, 1)`` (a fraction, as the model's)."""
-    slip = np.asarray(log.slip, dtype=float)
-    finite = np.isfinite(slip)
-    bad = finite & ((slip < 0.0) | (slip >= 1.0))
-    if not bad.any():
-        return
-    i = int(np.argmax(bad))
-    lo, hi = float(slip[finite].min()), float(slip[finite].max())
-    hint = " (in percent? slipest wants a fraction, 0.25 for 25 %)" if lo >= 0.0 and 1.5 < hi <= 100.0 else ""
-    raise LogFormatError(f"slip {slip[i]:g} at t = {float(log.t[i]):.3f} s is outside [0, 1){hint}; "
-                         f"{int(bad.sum())} sample(s) so, the column spans {lo:g} to {hi:g}", path)
 
 
 def _check_distinct(paths) -> None:
