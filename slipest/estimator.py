@@ -302,7 +302,9 @@ class SoilSlipEstimator(CycleEstimator):
         for a calibrated rover model).
     soil: what is known of the soil (:class:`~slipest.inverse.base.Soil`,
         any parts); complete: slip is inverted on that soil and it is not
-        learnt; partial: the known parts restrict the prior.
+        learnt, with the cycle's misfit tests (``fit_level``, the running
+        discrepancy, ``gross_misfit``) on that soil; partial: the known parts
+        restrict the prior. ValueError when a part lies outside ``grid``.
     use_reference: learn the soil from the reference slips given to
         :meth:`update` (else they are ignored).
     hazard: probability per cycle that the soil changed [-].
@@ -391,6 +393,10 @@ class SoilSlipEstimator(CycleEstimator):
         if not gross_misfit > 1.0:
             raise ValueError(f"gross_misfit={gross_misfit} must be > 1")
         self.gross_misfit = float(gross_misfit)
+        if soil is not None:
+            what = self.grid.outside(soil.kS, soil.phiS, soil.phiD, soil.dphi)
+            if what is not None:  # the surrogate would extrapolate, or the prior pin the soil to the edge
+                raise ValueError(f"the known soil {what} lies outside the soils the model covers")
         self._known = soil is not None and soil.complete
         self._cols = np.ascontiguousarray(self.model.columns, dtype=np.int64)
         self._no_onset = math.pi / n_legs - 1e-9  # onset at or past this: no break-away detected
@@ -480,6 +486,12 @@ class SoilSlipEstimator(CycleEstimator):
         starting from the clean value), at least 1; 1 with ``fit_typical`` inf."""
         return math.exp(self._log_fit) if self._log_fit > 0.0 else 1.0
 
+    def _learn_fit(self, best: float) -> None:
+        """The running discrepancy (module docstring) learns a cycle's best squared whitened distance."""
+        if math.isfinite(self.fit_typical) and best >= 0.0:
+            x = math.log(max(best / self.fit_typical, FIT_RATIO_MIN))
+            self._log_fit = DISCREPANCY_MEMORY * self._log_fit + (1.0 - DISCREPANCY_MEMORY) * x
+
     def update(self, features, slip_ref: float | None = None, widen: float = 1.0) -> CycleEstimate:
         """One cycle: its full feature row (order of ``FEATURE_NAMES``; its ``omega`` and ``noise_smooth``
         say what the cycle was measured at) and, optionally, a reference slip [-]. The likelihood is
@@ -506,10 +518,19 @@ class SoilSlipEstimator(CycleEstimator):
             raise ValueError("non-finite features: this cycle cannot be estimated")
         use_ref = self.use_reference and slip_ref is not None and math.isfinite(slip_ref)
         self.n_cycles += 1
-        if self._known:
+        floor = max(self.discrepancy, float(widen))
+        if self._known:  # slip on the soil given, with the same misfit tests as the grid's
             s = self.soil
-            m, sd = self.inverse.slip_known_soil(f, s.kS, s.phiS, s.phiD, scale=self.slip_temper)
-            return CycleEstimate(m, sd, s.dphi, 0.0, s.kS, 0.0, s.phiS, 0.0, s.phiD, 0.0, 0.0, False)
+            m, sd, best, misfit = self.inverse.known_soil_posterior(f, s.kS, s.phiS, s.phiD, self.slip_temper,
+                                                                    self.fit_level, floor)
+            self._learn_fit(best)
+            if misfit >= self.gross_misfit:
+                self.n_misfit += 1
+                self.n_gross += 1
+                n = math.nan
+                return CycleEstimate(n, n, n, n, n, n, n, n, n, n, n, False, misfit, floor)
+            self.n_misfit += misfit > 1.0
+            return CycleEstimate(m, sd, s.dphi, 0.0, s.kS, 0.0, s.phiS, 0.0, s.phiD, 0.0, 0.0, False, misfit, floor)
         if use_ref:
             nodes = self._nodes
             x = (min(max(slip_ref, nodes[0]), nodes[-1]) - nodes[0]) / (nodes[1] - nodes[0])
@@ -518,12 +539,9 @@ class SoilSlipEstimator(CycleEstimator):
         else:
             ref_k, ref_a = -1, 0.0
         skip = bool(f[_ONSET] >= self._no_onset)  # no break-away: no soil update (module docstring)
-        floor = max(self.discrepancy, float(widen))
         slip, sd, change, misfit, best, dm, ds, km, ks, pm, pss, dm2, ds2 = self._step(
             self._w, self._moments, self.hazard, ref_k, ref_a, skip, floor).tolist()
-        if math.isfinite(self.fit_typical) and best >= 0.0:  # the running discrepancy (module docstring)
-            x = math.log(max(best / self.fit_typical, FIT_RATIO_MIN))
-            self._log_fit = DISCREPANCY_MEMORY * self._log_fit + (1.0 - DISCREPANCY_MEMORY) * x
+        self._learn_fit(best)
         if misfit >= self.gross_misfit:  # not explained at all: no estimate (the step learnt nothing from it)
             self.n_misfit += 1
             self.n_gross += 1

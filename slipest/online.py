@@ -45,8 +45,10 @@ Methods (each a :class:`~slipest.cycle_estimator.CycleEstimator`):
 
 * ``"default"``: the multi-feature surrogate with the recursive soil filter
   (:class:`slipest.estimator.SoilSlipEstimator`). Works with the soil
-  unknown; a known soil (``soil=``) is used (complete: slip only; partial:
-  restricts the soil prior).
+  unknown; a known soil (``soil=``) is used (complete: slip only, each
+  cycle still tested against the model on that soil; partial: restricts
+  the soil prior), within the soils the model covers (``ValueError``
+  otherwise).
 * ``"eq515"``: thesis Eq. 5.15 on ``Da`` (:mod:`slipest.inverse.eq515`).
   Needs ``kS`` and either ``dphi`` (slip from ``Da``) or
   ``use_reference=True`` (``dphi`` learnt from reference slips by a

@@ -51,20 +51,33 @@ class FeatureInverse(SlipInverse):
     def slip_known_soil(self, features, kS, phiS, phiD, scale: float = 1.0) -> tuple[float, float]:
         """Posterior mean and std of slip [-] on a known soil (fine slip grid; the std times the model's
         ``interval_scale``); ``scale``: the likelihood's exponent (tempering). NaN when a modelled feature is
-        not finite."""
+        not finite. No misfit test: :meth:`known_soil_posterior` with ``fit_level`` inf."""
+        m, sd, _, _ = self.known_soil_posterior(features, kS, phiS, phiD, scale)
+        return m, sd
+
+    def known_soil_posterior(self, features, kS, phiS, phiD, scale: float = 1.0, fit_level: float = math.inf,
+                             floor: float = 1.0) -> tuple[float, float, float, float]:
+        """``(mean, std, best, misfit)`` of slip [-] on a known soil, as :meth:`slip_known_soil`, with the
+        misfit test of the grid path (:func:`~slipest.inverse.grid_kernels.grid_loglik`): ``best`` is the
+        smallest squared whitened distance over the slips; above ``fit_level`` the cycle's ``misfit`` is
+        ``best / fit_level`` (else 1), and the likelihood's exponent is divided by ``max(misfit, floor)``.
+        All NaN but ``misfit`` 1 when a modelled feature is not finite."""
         f = self.model.observe(features)
         if not np.all(np.isfinite(f)):
-            return math.nan, math.nan
+            return math.nan, math.nan, math.nan, 1.0
         omega, sig = self.conditions(features)
         x = np.empty((FINE_SLIP.size, 6))
         x[:, 0] = FINE_SLIP
         x[:, 1:] = (kS, phiS, phiS - phiD, omega, sig)
         r = f - self.model.mean(x)
         ri = np.linalg.inv(self.model.cov(omega, sig))
-        ll = -0.5 * scale * np.einsum("ij,jk,ik->i", r, ri, r) + self._lp_fine
+        d2 = np.einsum("ij,jk,ik->i", r, ri, r)
+        best = float(d2.min())
+        misfit = best / fit_level if best > fit_level else 1.0
+        ll = -0.5 * scale / max(misfit, floor) * d2 + self._lp_fine
         p = np.exp(ll - ll.max())
         m, sd = node_moments(p, FINE_SLIP, 0.0025**2 / 12)
-        return m, sd * self.model.interval_scale
+        return m, sd * self.model.interval_scale, best, misfit
 
     def soil_logprior(self, soil: Soil | None) -> np.ndarray:
         """Log prior over the grid cells: uniform, restricted (Gaussian, one grid step wide) to known soil parts."""

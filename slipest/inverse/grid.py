@@ -87,6 +87,16 @@ class SoilGrid:
     def key(self) -> tuple:
         return (self.kS.tobytes(), self.phiS.tobytes(), self.dphi.tobytes(), self.phid_min)
 
+    def outside(self, kS=None, phiS=None, phiD=None, dphi=None) -> str | None:
+        """What of a (partly) known soil lies outside the grid's ranges (kS [N/m], angles [rad]), as
+        ``"kS=3000 N/m (covered: 500-1500)"``; None when every part given lies within them."""
+        spans = {"kS": (kS, self.kS, " N/m"), "phiS": (phiS, self.phiS, " rad"), "dphi": (dphi, self.dphi, " rad"),
+                 "phiD": (phiD, np.array([self.phid_min, self.phiS.max()]), " rad")}
+        out = [f"{name}={v:g}{unit} (covered: {levels.min():.4g}-{levels.max():.4g})"
+               for name, (v, levels, unit) in spans.items()
+               if v is not None and not levels.min() - 1e-9 <= v <= levels.max() + 1e-9]
+        return ", ".join(out) or None
+
 
 @dataclass(frozen=True)
 class Table:
