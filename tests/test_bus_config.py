@@ -62,16 +62,22 @@ def test_no_interface_anywhere_says_where_to_give_one(no_can_config):
         resolve_bus_config("nope", "x")
 
 
-def test_the_commands_use_python_cans_configuration(no_can_config):
+def test_the_commands_use_python_cans_configuration(no_can_config, capsys):
     env = dict(os.environ)  # the fixture took CAN_* out and set HOME
     p = subprocess.run([PY, "-m", "slipest", "can", "--duration", "0.3"], capture_output=True, text=True, timeout=120,
                        env={**env, "CAN_INTERFACE": "virtual", "CAN_CHANNEL": "configured"})
     assert p.returncode == 0, p.stderr
     assert "INFO slipest.can: listening on CAN bus virtual:configured" in p.stderr
-    p = subprocess.run([PY, "-m", "slipest", "can", "--duration", "0.3"], capture_output=True, text=True, timeout=120,
-                       env=env)
-    assert p.returncode == 1 and "ERROR slipest.can: no CAN interface: give -i/--interface" in p.stderr
-    assert "Unknown interface type" not in p.stderr
-    p = subprocess.run([PY, "-m", "firmware_sim", "can", "--cycles", "1"], capture_output=True, text=True,
-                       timeout=120, env=env)
-    assert p.returncode == 2 and "no CAN interface: give -i/--interface" in p.stderr
+    # without a configuration both commands refuse before any work: their CLIs in this process (the fixture's
+    # environment is this process's), no new interpreter's start-up
+    from firmware_sim import cli as device_cli
+    from slipest.cli.main import main
+
+    capsys.readouterr()
+    rc = main(["can", "--duration", "0.3"])
+    err = capsys.readouterr().err
+    assert rc == 1 and "ERROR slipest.can: no CAN interface: give -i/--interface" in err
+    assert "Unknown interface type" not in err
+    with pytest.raises(SystemExit) as exc:
+        device_cli.main(["can", "--cycles", "1"])
+    assert exc.value.code == 2 and "no CAN interface: give -i/--interface" in capsys.readouterr().err

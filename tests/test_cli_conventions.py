@@ -21,6 +21,7 @@ from slipest.cli.config_file import ConfigFileError, file_keys, load_config_file
 from slipest.cli.main import main, parse_args
 from slipest.online import ESTIMATE_FIELDS
 from tests.hil_support import PY, Stopping, firmware_sim, serial_device, slipest_cmd, stop_once_said
+from tests.cli_support import slipest_in_process
 
 ROOT = Path(__file__).resolve().parents[1]
 #: A log line: date, time to the millisecond, level, logger, message.
@@ -85,7 +86,7 @@ def test_log_levels_from_the_options():
     assert _levels(["-q", "--log-level", "debug"]) == "DEBUG"
 
 
-def test_live_messages_go_through_logging_with_time_and_level():
+def test_live_messages_go_through_logging_with_time_and_level(capsys):
     base = ["-m", "slipest", "can", "-i", "virtual", "-c", "conventions", "--duration", "0.3"]
     p = _run(*base)
     assert p.returncode == 0 and p.stdout == ""  # no cycle: no estimates, not even a header
@@ -97,10 +98,11 @@ def test_live_messages_go_through_logging_with_time_and_level():
     quiet = _run(*base, "-q")
     assert quiet.returncode == 0 and quiet.stderr == ""  # INFO hidden
     # a fatal error is logged at ERROR, shown even with -q, and the command fails
-    p = _run("-m", "slipest", "serial", str(ROOT / "no-such-port"), "--wait-open", "0.2", "-q")
-    assert p.returncode == 1
-    m = LOG_LINE.match(p.stderr.strip())
-    assert m and m.group(1) == "ERROR" and m.group(2) == "slipest.serial" and "no-such-port" in m.group(3), p.stderr
+    # (refused: the CLI in this process, see _main)
+    rc, err = slipest_in_process(capsys, "serial", str(ROOT / "no-such-port"), "--wait-open", "0.2", "-q")
+    assert rc == 1
+    m = LOG_LINE.match(err.strip())
+    assert m and m.group(1) == "ERROR" and m.group(2) == "slipest.serial" and "no-such-port" in m.group(3), err
 
 
 # --- --config --------------------------------------------------------------------------------------------------
@@ -152,15 +154,16 @@ def test_a_bad_config_file_names_the_file_and_the_key(tmp_path, text, message):
     assert str(err.value).startswith(f"{cfg}: {message}")
 
 
-def test_a_bad_config_file_stops_the_command_with_a_usage_error(tmp_path):
+def test_a_bad_config_file_stops_the_command_with_a_usage_error(tmp_path, capsys):
     cfg = _config(tmp_path, "wheels = [0]\n")
-    p = _run("-m", "slipest", "serial", "--config", str(cfg))
-    assert p.returncode == 2
-    assert p.stderr.strip().endswith(f"slipest serial: error: {cfg}: unknown key 'wheels' (did you mean 'wheel'?)")
-    p = _run("-m", "slipest", "serial", "--config", str(tmp_path / "missing.toml"))
-    assert p.returncode == 2 and f"{tmp_path / 'missing.toml'}: no such file" in p.stderr
-    p = _run("-m", "slipest", "serial", "--config", str(_config(tmp_path, "legs = 4\n")), "--wait-open", "0.1")
-    assert p.returncode == 1 and "no PORT" in p.stderr
+    rc, err = slipest_in_process(capsys, "serial", "--config", str(cfg))
+    assert rc == 2
+    assert err.strip().endswith(f"slipest serial: error: {cfg}: unknown key 'wheels' (did you mean 'wheel'?)")
+    rc, err = slipest_in_process(capsys, "serial", "--config", str(tmp_path / "missing.toml"))
+    assert rc == 2 and f"{tmp_path / 'missing.toml'}: no such file" in err
+    rc, err = slipest_in_process(capsys, "serial", "--config", str(_config(tmp_path, "legs = 4\n")),
+                                 "--wait-open", "0.1")
+    assert rc == 1 and "no PORT" in err
 
 
 def _serial_parser():
@@ -190,17 +193,16 @@ def test_a_quiet_link_is_said_after_5_s_unless_told_otherwise():
     assert parser.parse_args(["/dev/ttyX", "--quiet-notice", "2"]).quiet_notice == 2.0
 
 
-def test_a_quiet_notice_that_is_not_a_positive_time_is_refused_before_the_port_is_opened():
-    r = subprocess.run([PY, "-m", "slipest.cli.main", "serial", "/dev/ttyNONE", "--quiet-notice", "0"],
-                       capture_output=True, text=True, timeout=60)
-    assert r.returncode != 0
-    assert "--quiet-notice must be a number of seconds > 0" in r.stderr and "ttyNONE" not in r.stderr
+def test_a_quiet_notice_that_is_not_a_positive_time_is_refused_before_the_port_is_opened(capsys):
+    rc, err = slipest_in_process(capsys, "serial", "/dev/ttyNONE", "--quiet-notice", "0")
+    assert rc != 0
+    assert "--quiet-notice must be a number of seconds > 0" in err and "ttyNONE" not in err
 
 
 # --- a live run from a config file, estimates as JSON lines -----------------------------------------------------
 
 
-def test_live_serial_from_a_config_file_prints_json_lines_that_replay_agrees_with(tmp_path):
+def test_live_serial_from_a_config_file_prints_json_lines_that_replay_agrees_with(tmp_path, capsys):
     rec = tmp_path / "rec.wheel1.csv"  # "rec.csv" names wheel 0's recording; wheel 1's is this
     with Stopping() as procs:
         dev = procs.add(firmware_sim("serial", "--cycles", "5", "--speed", "16", "--noise", "0.01", "--seed", "3",
@@ -219,10 +221,12 @@ def test_live_serial_from_a_config_file_prints_json_lines_that_replay_agrees_wit
     assert all(LOG_LINE.match(line).group(1) == "WARNING" for line in est.err_lines if not line.startswith("  "))
     ok = [r for r in rows if r["quality"] == "ok"]
     assert len(ok) >= 3 and all(0.1 < r["slip"] < 0.45 for r in ok)  # true slip 0.25
-    replay = subprocess.run([PY, "-m", "slipest", "replay", str(rec), "--format", "jsonl"], capture_output=True,
-                            text=True, timeout=120)
-    assert replay.returncode == 0, replay.stderr
-    replayed = [json.loads(line) for line in replay.stdout.splitlines()]
+    # the replay in this process: the CLI's code path (as tests/test_live_record_canlog.py::replayed_rows)
+    capsys.readouterr()
+    rc = main(["replay", str(rec), "--format", "jsonl"])
+    out, err = capsys.readouterr()
+    assert rc == 0, err
+    replayed = [json.loads(line) for line in out.splitlines()]
     assert len(replayed) == len(rows)
     for live, again in zip(rows, replayed):  # the same (the recording keeps az to 1e-6 m/s^2: floats to 1e-4)
         assert list(again) == list(ESTIMATE_FIELDS)

@@ -95,11 +95,15 @@ def test_demo_side_by_side_prints_the_rover_estimates_quality():
     ("--cycles", "1000", "is not a number of leg cycles of the demo's drive (1..40)"),  # ran 40
     ("--seed", "-3", "is not a seed (a whole number >= 0)"),  # "the device failed:" and its numpy traceback
 ])
-def test_demo_refuses_a_cycle_count_outside_its_drive_and_a_negative_seed(option, value, why):
-    proc = slipest_cmd("demo", "--speed", "20", option, value)
-    try:
-        assert proc.wait(60) == 2, proc.stderr
-    finally:
-        proc.stop()
-    assert proc.err_lines[-1] == f"slipest demo: error: argument {option}: {value!r} {why}", proc.stderr
-    assert not proc.lines  # nothing started
+def test_demo_refuses_a_cycle_count_outside_its_drive_and_a_negative_seed(option, value, why, capsys):
+    # refused as the arguments are parsed: the CLI in this process (no new interpreter's start-up); a refusal
+    # that did not come would start the demo's processes and fail the SystemExit check with their output
+    from slipest.cli.main import main
+
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        main(["demo", "--speed", "20", option, value])
+    out, err = capsys.readouterr()
+    assert exc.value.code == 2, err
+    assert err.splitlines()[-1] == f"slipest demo: error: argument {option}: {value!r} {why}", err
+    assert not out.splitlines()  # nothing started

@@ -412,10 +412,28 @@ def test_a_serial_device_with_no_reader_says_it_waits_for_one_and_streams_once_o
         proc.stop()
 
 
-def test_cli_refuses_byte_corruption_on_can():
-    proc = firmware_sim("can", "-i", "virtual", "-c", "x", "--corrupt-rate", "0.01")
-    assert proc.wait(30) == 2
-    assert "serial fault" in proc.stderr
+def _refused_in_process(capsys, monkeypatch, *argv) -> tuple[int, list[str], list[str]]:
+    """``firmware-sim ARGV`` refused before it streams, run in this process (the CLI's code path without a new
+    interpreter's start-up): (exit status, stdout lines, stderr lines). No link is made and nothing runs here:
+    a refusal that did not come would fail the test at ``make_link``. A traceback would be an exception out of
+    the test."""
+    from firmware_sim import cli
+
+    def taken(args):
+        raise AssertionError(f"{argv} was taken: a link was being made")
+
+    monkeypatch.setattr(cli, "make_link", taken)
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        cli.main(list(argv))
+    out, err = capsys.readouterr()
+    return exc.value.code, out.splitlines(), err.splitlines()
+
+
+def test_cli_refuses_byte_corruption_on_can(capsys, monkeypatch):
+    rc, _, err = _refused_in_process(capsys, monkeypatch, "can", "-i", "virtual", "-c", "x", "--corrupt-rate", "0.01")
+    assert rc == 2
+    assert "serial fault" in "\n".join(err)
 
 
 # --- on a python-can bus ------------------------------------------------------------------------
@@ -488,19 +506,18 @@ def test_device_writes_to_a_given_port_with_pyserial(tmp_path):
 # --- the command line refuses what it cannot do, before it streams -----------------------------------
 
 
-def test_cli_checks_the_report_and_send_log_paths_before_the_run(tmp_path):
+def test_cli_checks_the_report_and_send_log_paths_before_the_run(tmp_path, capsys, monkeypatch):
     # a missing directory (the report used to be lost after the whole run, with a traceback), a directory named
-    # as the file
+    # as the file (the CLI in this process: see _refused_in_process)
     for option, path, why in (("--report", tmp_path / "missing" / "r.json", "no directory"),
                               ("--send-log", tmp_path / "missing" / "sent.npz", "no directory"),
                               ("--send-log", tmp_path, "is a directory")):
-        proc = firmware_sim("serial", "--cycles", "1", "--speed", "0", option, str(path))
-        try:
-            assert proc.wait(30) == 2
-        finally:
-            proc.stop()
-        assert f"error: {option} {path}" in proc.stderr and why in proc.stderr, proc.stderr
-        assert "Traceback" not in proc.stderr and not any("serial device" in line for line in proc.lines)
+        rc, lines, err_lines = _refused_in_process(capsys, monkeypatch, "serial", "--cycles", "1", "--speed", "0",
+                                                   option, str(path))
+        stderr = "\n".join(err_lines)
+        assert rc == 2
+        assert f"error: {option} {path}" in stderr and why in stderr, stderr
+        assert "Traceback" not in stderr and not any("serial device" in line for line in lines)
 
 
 @pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full (a device that is always full)")
@@ -525,14 +542,14 @@ def test_a_report_that_cannot_be_written_at_the_end_is_named_in_one_line_and_the
     ("--duration", "-5", "duration > 0"),  # was taken: 0 frames sent, exit 0
     ("--seed", "-1", "not a seed"),  # was a numpy traceback once a reader had connected
 ])
-def test_cli_refuses_a_negative_speed_duration_or_seed_in_one_line(option, value, why):
-    proc = firmware_sim("serial", "--cycles", "1", "--wait-peer", "5", option, value)
-    try:
-        assert proc.wait(30) == 2
-    finally:
-        proc.stop()
-    assert f"error: argument {option}: " in proc.err_lines[-1] and why in proc.err_lines[-1], proc.stderr
-    assert "Traceback" not in proc.stderr and not proc.lines
+def test_cli_refuses_a_negative_speed_duration_or_seed_in_one_line(option, value, why, capsys, monkeypatch):
+    # the CLI in this process: see _refused_in_process
+    rc, lines, err_lines = _refused_in_process(capsys, monkeypatch, "serial", "--cycles", "1", "--wait-peer", "5",
+                                               option, value)
+    stderr = "\n".join(err_lines)
+    assert rc == 2
+    assert f"error: argument {option}: " in err_lines[-1] and why in err_lines[-1], stderr
+    assert "Traceback" not in stderr and not lines
 
 
 @pytest.mark.parametrize("option, value", [

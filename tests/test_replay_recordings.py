@@ -55,16 +55,22 @@ def _offline(s):
     return est.push_many(t, [d.az for d in dec], [d.theta for d in dec]) + est.finish()
 
 
+@pytest.fixture(scope="module")
+def two_wheels_offline(two_wheels):
+    """Each wheel's offline estimates (_offline), computed once for the log formats' tests, which only read them."""
+    return {wheel: _offline(s) for wheel, s in two_wheels.items()}
+
+
 @pytest.mark.parametrize("suffix", [".blf", ".asc", ".log", ".trc", ".csv", ".asc.gz"])
-def test_python_can_log_formats_replay_every_wheel(suffix, two_wheels, tmp_path, capsys):
+def test_python_can_log_formats_replay_every_wheel(suffix, two_wheels, two_wheels_offline, tmp_path, capsys):
     frames = can_frames(two_wheels, unknown_every=400)
     log = write_can_log(tmp_path / f"drive{suffix}", frames)
     rc, out, err = replay([log], capsys)
     assert rc == 0, err
     rows = rows_by_key(out)
     assert out.splitlines()[0] == "wheel," + ",".join(ESTIMATE_FIELDS)
-    for wheel, s in two_wheels.items():
-        expected = _offline(s)
+    for wheel in two_wheels:
+        expected = two_wheels_offline[wheel]
         got = [rows[(wheel, e.cycle)] for e in expected]
         assert [r["quality"] for r in got] == [e.quality for e in expected]
         assert sum(e.quality == "ok" for e in expected) >= 3

@@ -30,6 +30,7 @@ from slipest.rover import testbed
 from slipest.rover.discrepancy import Discrepancy, fit_discrepancy, slip_terms, soil_terms
 from slipest.rover.file import RoverFileError, load_rover, save_rover
 from slipest.rover.surrogate import RoverSurrogate
+from tests.cli_support import slipest_in_process
 
 EFFECT = {"name": "imu_lowpass", "cutoff": 4.0, "order": 2}
 
@@ -253,7 +254,7 @@ def _truth_rmse(stderr: str) -> float:
     return float(m.group(1))
 
 
-def test_calibrate_then_replay_with_the_rover_file_beats_the_shipped_model(rover_logs):
+def test_calibrate_then_replay_with_the_rover_file_beats_the_shipped_model(rover_logs, capsys):
     d, tb, drive = rover_logs
     out = d / "rover.json"
     r = _slipest("calibrate", *tb, "--legs", "4", "--no-diagnosis", "--batch", "100", "--no-progress", "-o", out)
@@ -270,38 +271,42 @@ def test_calibrate_then_replay_with_the_rover_file_beats_the_shipped_model(rover
     eq = _slipest("replay", drive, "--truth", "--rover", out, "--method", "eq515", "--kS", "1000", "--dphi", "0.2",
                   "-o", d / "c.csv")
     assert eq.returncode == 0 and "method eq515" in eq.stderr, eq.stderr
-    wrong = _slipest("replay", drive, "--rover", out, "--legs", "3", "-o", d / "e.csv", check=False)
-    assert wrong.returncode == 2 and "was made for a 4-leg wheel-leg, not 3 legs" in wrong.stderr
+    # refused before any work: the CLI in this process (tests/cli_support.py)
+    rc, err = slipest_in_process(capsys, "replay", drive, "--rover", out, "--legs", "3", "-o", d / "e.csv")
+    assert rc == 2 and "was made for a 4-leg wheel-leg, not 3 legs" in err
 
 
-def test_calibrate_names_a_log_without_slip(tmp_path, rover_logs):
+def test_calibrate_names_a_log_without_slip(tmp_path, rover_logs, capsys):
     _, tb, _ = rover_logs
     s = simulate_stream(Scenario.constant(3, noise_g=0.01, seed=1))
     path = tmp_path / "noslip.csv"
     with LogWriter(path, ("t", "az", "theta")) as w:
         w.write(s.t, s.az, s.theta)
-    r = _slipest("calibrate", tb[0], path, "--no-progress", "-o", tmp_path / "r.json", check=False)
-    assert r.returncode == 1 and "noslip.csv" in r.stderr and "no 'slip' column" in r.stderr, r.stderr
+    rc, err = slipest_in_process(capsys, "calibrate", tb[0], path, "--no-progress", "-o", tmp_path / "r.json")
+    assert rc == 1 and "noslip.csv" in err and "no 'slip' column" in err, err
     assert not (tmp_path / "r.json").exists()
 
 
-def test_calibrate_refuses_slips_in_percent_or_negative_a_log_given_twice_and_mixed_imu_rates(tmp_path, rover_logs):
+def test_calibrate_refuses_slips_in_percent_or_negative_a_log_given_twice_and_mixed_imu_rates(tmp_path, rover_logs,
+                                                                                             capsys):
     """Each wrote a rover file that made estimates worse (percent: every drive cycle flagged; negative or >= 1:
     slip RMSE 0.11-0.13 against 0.04), held a log out against itself, or used a rate neither log had; now
-    refused before the calibration runs, naming the file."""
+    refused before the calibration runs, naming the file. (The CLI in this process: a refusal needs no new
+    interpreter.)"""
     _, tb, _ = rover_logs
     log = read_log(tb[0])
     for name, slip, expect in (("pct.csv", log.slip * 100, "in percent"), ("neg.csv", -log.slip, "outside [0, 1)"),
                                ("ge1.csv", log.slip + 1.0, "outside [0, 1)")):
         with LogWriter(tmp_path / name, ("t", "az", "theta", "slip"), metadata={"nL": 4, "rate": "1000"}) as w:
             w.write(log.t, log.az, log.theta, slip)
-        r = _slipest("calibrate", tmp_path / name, tb[1], "--no-progress", "-o", tmp_path / "r.json", check=False)
-        assert r.returncode == 1 and name in r.stderr and expect in r.stderr, r.stderr
-    r = _slipest("calibrate", tb[0], tb[0], "--no-progress", "-o", tmp_path / "r.json", check=False)
-    assert r.returncode == 1 and "is the same log as" in r.stderr, r.stderr
+        rc, err = slipest_in_process(capsys, "calibrate", tmp_path / name, tb[1], "--no-progress", "-o",
+                                     tmp_path / "r.json")
+        assert rc == 1 and name in err and expect in err, err
+    rc, err = slipest_in_process(capsys, "calibrate", tb[0], tb[0], "--no-progress", "-o", tmp_path / "r.json")
+    assert rc == 1 and "is the same log as" in err, err
     slow = _write(tmp_path / "r500.csv", replace(_scenario(5, (900.0, 0.5, 0.3), [0.1, 0.3, 0.2]), rate=500.0))
-    r = _slipest("calibrate", tb[0], slow, "--no-progress", "-o", tmp_path / "r.json", check=False)
-    assert r.returncode == 1 and "different IMU rates" in r.stderr and "500 Hz" in r.stderr, r.stderr
+    rc, err = slipest_in_process(capsys, "calibrate", tb[0], slow, "--no-progress", "-o", tmp_path / "r.json")
+    assert rc == 1 and "different IMU rates" in err and "500 Hz" in err, err
     assert not (tmp_path / "r.json").exists()
 
 
