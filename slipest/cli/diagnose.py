@@ -13,6 +13,14 @@ and any effect are never read from the metadata. The gap is the RMS
 difference of phase-binned az waveforms in excess of the noise floor [g]
 (see slipest.diagnosis.rank).
 
+Bad data is treated as replay treats it: a reference slip outside [0, 1)
+(in percent, negative) is refused before any work, naming the file; leg
+cycles replay flags (a logger pause: gap, two logs appended: reverse, ...)
+are left out and isolated az glitches (any size) left out of their cycles,
+both counted on the report's 'data:' line (JSON: cycles_left_out,
+samples_repaired). --json, -o and --plots (a directory that exists or can
+be created) are checked before the diagnosis (exit 2).
+
 Many drives: --per-log diagnoses each log on its own (a folder: its *.csv
 logs, recursively) and writes one table, a row per log (cycles, mean slip,
 fitted soil, gaps, verdict, error), in parallel processes (--jobs) or on a
@@ -28,7 +36,7 @@ import json
 import sys
 
 from slipest.cli.command import add_command, leg_count
-from slipest.cli.output_paths import output_problem
+from slipest.cli.output_paths import output_problem, table_inputs
 
 
 def add_parser(sub) -> None:
@@ -56,6 +64,45 @@ def add_parser(sub) -> None:
     m.add_argument("--scheduler", metavar="ADDRESS",
                    help="run on this Dask cluster (e.g. tcp://10.0.0.5:8786; pip install 'slipest[dask]')")
     p.set_defaults(func=run)
+
+
+def plots_dir_problem(directory, inputs=()) -> str | None:
+    """Why ``--plots DIRECTORY`` cannot take the plots, or None (also for None: no plots). It must be a
+    directory that exists or can be created (tried here, before the diagnosis's minutes, and what was created
+    removed again: the plots create it when written; a file of that name, or a place where no directory can be
+    made, is refused up front), and none of its plots may be one of the files read
+    (:func:`~slipest.cli.output_paths.output_problem`)."""
+    import os
+
+    if directory is None:
+        return None
+    if os.path.exists(directory) and not os.path.isdir(directory):
+        return f"--plots {directory} is not a directory: name a directory (it is created if missing)"
+    missing, head = [], os.path.abspath(directory)
+    while not os.path.exists(head) and head != os.path.dirname(head):
+        missing.append(head)
+        head = os.path.dirname(head)
+    try:
+        os.makedirs(directory, exist_ok=True)
+    except OSError as exc:
+        return f"--plots {directory}: cannot create that directory ({exc.strerror or exc})"
+    finally:
+        for made in missing:  # deepest first: only the directories this check created
+            try:
+                os.rmdir(made)
+            except OSError:
+                pass
+    if missing:
+        return None
+    from slipest.diagnosis.plots import PLOT_FILES
+
+    for name in PLOT_FILES:
+        problem = output_problem(os.path.join(directory, name), inputs, "--plots")
+        if problem:
+            return problem
+    if not os.access(directory, os.W_OK | os.X_OK):
+        return f"--plots {directory}: directory not writable"
+    return None
 
 
 def _fail(msg: str):
@@ -95,9 +142,11 @@ def run(args: argparse.Namespace) -> int:
     from slipest.extras import MissingExtra
 
     problem = (output_problem(args.json, args.logs, "--json")
-               or output_problem(None if args.output == "-" else args.output, args.logs))
-    if problem:  # before the diagnosis's minutes, not after
-        _fail(problem)
+               or output_problem(None if args.output == "-" else args.output, args.logs)
+               or (None if args.per_log else plots_dir_problem(args.plots, args.logs)))
+    if problem:  # before the diagnosis's minutes, not after; a usage error (exit 2), as replay's
+        print(f"slipest diagnose: {problem}", file=sys.stderr)
+        return 2
     options = options_from_args(args)
     try:
         options.checked_effects()
@@ -141,6 +190,14 @@ def _per_log(args, options) -> int:
     logs = expand_logs(args.logs, kinds=("slipest",))
     if not logs:
         _fail(f"no log found in {', '.join(args.logs)}")
+    try:  # before any work: -o naming a log is refused (exit 2, as run's), our own earlier table left out
+        logs, left_out = table_inputs(logs, args.output, DIAGNOSE_COLUMNS)
+    except ValueError as exc:
+        print(f"slipest diagnose: {exc}", file=sys.stderr)
+        return 2
+    for old in left_out:
+        print(f"diagnose: {old} left out: it is this command's table from an earlier run (written over now)",
+              file=sys.stderr)
     try:
         rows = run_many(diagnose_rows, logs, options, columns=DIAGNOSE_COLUMNS, jobs=args.jobs,
                         scheduler=args.scheduler, progress=not args.no_progress, desc="diagnose")

@@ -20,9 +20,14 @@ cycle) is dropped: its history is not the steady sequence the prediction
 assumes. Bins without samples (a coarse encoder repeats angles) are
 interpolated from their neighbours, if at least :data:`MIN_FILLED` of the
 bins hold samples. A cycle whose phase goes backwards (the rover reversing)
-or holds a non-finite ``az`` is dropped. A coarse encoder's angle (whole
-counts, repeated over several samples) is interpolated between its count
-changes first (:func:`slipest.dequantize.dequantize_log`, the stream's
+or holds a non-finite ``az`` is dropped; so is a cycle holding samples of a
+cycle replay's segmenter flags (``gap``, ``reverse``, ``time``, ``nan``...:
+:func:`segmenter_flags`, counted by flag), and a log whose leg angle goes
+back (two drives in one file) is cut into runs at each reversal. Isolated
+outliers of ``az`` (a glitch of any size) are left out of a kept cycle's
+samples with the estimator's rule (:func:`slipest.despike.outliers`). A
+coarse encoder's angle (whole counts, repeated over several samples) is
+interpolated between its count changes first (:func:`slipest.dequantize.dequantize_log`, the stream's
 interpolation over the whole log).
 
 Each cycle's leg speed ``omega`` is the mean speed of its *speed level*:
@@ -51,6 +56,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from slipest.dequantize import dequantize_log
+from slipest.despike import outliers
 from slipest.diagnosis.predict import Grid
 
 #: Fewest share of the analysis bins a cycle's samples must fill (the rest are interpolated).
@@ -60,7 +66,7 @@ MIN_FILLED = 0.1
 SPEED_TOLERANCE = 0.02
 
 #: Why a leg cycle of a log is not used (counted, and named when no cycle is left).
-DROP_REASONS = ("incomplete", "no reference slip", "first of the log", "backwards or non-finite az")
+DROP_REASONS = ("incomplete", "no reference slip", "first of the log", "backwards or non-finite az", "flagged")
 
 #: What a log without reference slip needs (the end of that error message).
 NEEDS_SLIP = ("The diagnosis compares each leg cycle with the model at the slip the wheel really had, so it "
@@ -101,6 +107,8 @@ class CycleSet:
     dropped: int = 0
     prev_omega: np.ndarray | None = None
     touchdowns: np.ndarray | None = None
+    repaired: int = 0
+    left_out: dict = field(default_factory=dict)
 
     def __post_init__(self):
         if self.prev_omega is None:
@@ -151,12 +159,17 @@ def sample_noise(az: np.ndarray) -> float:
 
 
 def cut_cycles(t, az, theta, slip, n_legs: int, grid: Grid | None = None, log_index: int = 0,
-               keep_samples: bool = True) -> CycleSet:
+               keep_samples: bool = True, flags=None) -> CycleSet:
     """The complete cycles of one log, binned (see the module docstring).
 
     ``ValueError`` when no cycle is usable, saying why: the reference slip
     missing (``slip`` all NaN, or NaN at every complete cycle's midstance),
     else the count of cycles dropped by reason (:data:`DROP_REASONS`).
+
+    ``flags``: ``(code, names)`` from :func:`segmenter_flags` (None: not checked): a cycle holding a
+    sample of a cycle the segmenter flags is left out (counted by flag in ``left_out``, as ``"flagged"`` in
+    ``dropped``). Isolated outliers of ``az`` (:func:`slipest.despike.outliers`, a glitch of any size) are left
+    out of the kept cycles' samples, as the estimator leaves them out (counted in ``repaired``).
     """
     t = np.asarray(t, dtype=float)
     az = np.asarray(az, dtype=float)
@@ -167,6 +180,8 @@ def cut_cycles(t, az, theta, slip, n_legs: int, grid: Grid | None = None, log_in
     if not (t.shape == az.shape == theta.shape == slip.shape):
         raise ValueError("t, az, theta and slip must have the same length")
     grid = grid or Grid(n_legs)
+    if flags is not None and len(flags) > 2 and len(flags[2]):
+        return _cut_runs(t, az, theta, slip, n_legs, grid, log_index, keep_samples, flags)
     half = math.pi / n_legs
     ok = np.isfinite(t) & np.isfinite(theta)
     t, az, theta, slip = t[ok], az[ok], theta[ok], slip[ok]
@@ -186,6 +201,11 @@ def cut_cycles(t, az, theta, slip, n_legs: int, grid: Grid | None = None, log_in
     ys, counts, slips, ks, t0s, samples, speeds = [], [], [], [], [], [], []
     slip_of_k = {}
     why = dict.fromkeys(DROP_REASONS, 0)  # cycles dropped, by reason
+    left_out = {}  # cycles the segmenter flags, by flag (counted in why["flagged"])
+    repaired = 0  # glitch samples left out of kept cycles
+    flagged, flag_names = (None, None) if flags is None else flags[:2]
+    if flagged is not None:
+        flagged = np.asarray(flagged)[ok]
     for s0, s1 in zip(starts, ends):
         ph = phase[s0:s1]
         sl = slip[s0:s1]
@@ -198,6 +218,12 @@ def cut_cycles(t, az, theta, slip, n_legs: int, grid: Grid | None = None, log_in
         if np.any(np.diff(ph) < 0) or not np.all(np.isfinite(a)):
             why["backwards or non-finite az"] += 1
             continue
+        tt = t[s0:s1]
+        spikes = outliers(a)  # isolated glitches (any size) left out, as the estimator does (slipest.despike)
+        n_spikes = int(np.count_nonzero(spikes))
+        if n_spikes:
+            keep = ~spikes
+            ph, a, tt = ph[keep], a[keep], tt[keep]
         b = np.clip(np.searchsorted(edges, ph, side="right") - 1, 0, grid.nb - 1)
         cnt = np.bincount(b, minlength=grid.nb).astype(float)
         filled = cnt > 0
@@ -210,6 +236,11 @@ def cut_cycles(t, az, theta, slip, n_legs: int, grid: Grid | None = None, log_in
         if reason is not None:
             why[reason] += 1
             continue
+        if flagged is not None and flagged[s0:s1].any():  # the segmenter flags it: replay does not estimate it
+            flag = str(flag_names[int(flagged[s0:s1].max())])
+            left_out[flag] = left_out.get(flag, 0) + 1
+            continue
+        repaired += n_spikes
         safe = np.maximum(cnt, 1)
         mean = np.bincount(b, weights=a, minlength=grid.nb) / safe
         # refer every bin mean to its bin centre: the samples' centroid sits up to half a sample period
@@ -226,7 +257,6 @@ def cut_cycles(t, az, theta, slip, n_legs: int, grid: Grid | None = None, log_in
         ks.append(kk)
         t0s.append(t[s0])
         # leg speed per bin from the encoder: mean of d theta / d t between consecutive samples [rad/s]
-        tt = t[s0:s1]
         mid = 0.5 * (ph[1:] + ph[:-1])
         rate = np.diff(ph) / np.maximum(np.diff(tt), 1e-12)
         bm = np.clip(np.searchsorted(edges, mid, side="right") - 1, 0, grid.nb - 1)
@@ -235,8 +265,9 @@ def cut_cycles(t, az, theta, slip, n_legs: int, grid: Grid | None = None, log_in
         speeds.append(np.where(cm > 0, sp, np.nan))
         if keep_samples:
             samples.append((ph.copy(), a.copy()))
+    why["flagged"] = sum(left_out.values())
     if not ys:
-        raise ValueError(_no_cycle_message(why, n_legs))
+        raise ValueError(_no_cycle_message(why, n_legs, left_out))
     ks = np.array(ks)
     slips = np.array(slips)
     prev = np.array([slip_of_k[kk - 1] for kk in ks])
@@ -269,9 +300,68 @@ def cut_cycles(t, az, theta, slip, n_legs: int, grid: Grid | None = None, log_in
         samples=samples,
         dropped=sum(why.values()),
         prev_omega=prev_omegas,
+        repaired=repaired,
+        left_out=left_out,
         touchdowns=_touchdowns(ks, k, phase, half),
     )
 
+
+
+def segmenter_flags(t, az, theta, n_legs: int):
+    """Which samples lie in a leg cycle that replay's segmenter flags: ``(code, names, restarts)``, ``code``
+    an ``(n,)`` int array (0: an ``"ok"`` cycle's, else ``names[code]``: the flagged cycle's quality, e.g.
+    ``"gap"``, ``"reverse"``, ``"time"``, ``"nan"``; not ``"partial"``: a cycle not observed from its start is
+    the diagnosis's own ``"incomplete"``), ``restarts``: the indices of the samples that revealed a
+    ``"reverse"`` (the leg angle going back: a reversing rover, or two logs appended in one file), where
+    :func:`cut_cycles` cuts the log into runs numbered on their own. The segmenter
+    (:class:`slipest.segmentation.CycleSegmenter`) runs with the live estimator's options (whole cycle,
+    :mod:`slipest.online`), over the samples in log order; a flagged cycle's samples run from the sample that
+    opened it (the one that closed the cycle before) to the one that closed or ended it."""
+    from slipest.segmentation import QUALITIES, CycleSegmenter
+
+    half = math.pi / n_legs
+    seg = CycleSegmenter(n_legs, window=(-half, half), complete_from=0.0, max_dtheta=half / 10.0)
+    t = np.asarray(t, dtype=float)
+    az = np.asarray(az, dtype=float)
+    theta = np.asarray(theta, dtype=float)
+    code = np.zeros(t.size, dtype=np.int64)
+    names = np.array(QUALITIES)
+    opened = 0
+    restarts = []
+    for i in range(t.size):
+        for cyc in seg.push(t[i], az[i], theta[i]):
+            if cyc.quality == "reverse":
+                restarts.append(i)
+            if cyc.quality not in ("ok", "partial"):
+                code[opened:i] = QUALITIES.index(cyc.quality)
+            opened = i
+    for cyc in seg.finish():
+        if cyc.quality not in ("ok", "partial"):
+            code[opened:] = QUALITIES.index(cyc.quality)
+    return code, names, restarts
+
+
+def _cut_runs(t, az, theta, slip, n_legs, grid, log_index, keep_samples, flags) -> CycleSet:
+    """:func:`cut_cycles` of a log whose leg angle goes back (``flags[2]``: where): each run between the
+    reversals cut on its own (its cycles numbered from its own start), the cycles of all runs in one set of
+    the log (``log_index``, one noise level: the whole log's); ValueError when no run has a usable cycle."""
+    code, names, restarts = flags
+    bounds = [0, *restarts, t.size]
+    sets, errors = [], []
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        if b - a < 10:
+            continue
+        try:
+            sets.append(cut_cycles(t[a:b], az[a:b], theta[a:b], slip[a:b], n_legs, grid=grid, log_index=log_index,
+                                   keep_samples=keep_samples, flags=(code[a:b], names)))
+        except ValueError as exc:
+            errors.append(str(exc))
+    if not sets:
+        raise ValueError(errors[0] if errors else "no complete leg cycle in the log")
+    out = concat(sets)
+    out.log = np.full(len(out), log_index)
+    out.noise = np.array([sample_noise(az[np.isfinite(t) & np.isfinite(theta)])])
+    return out
 
 
 def _touchdowns(ks, k, phase, half) -> np.ndarray:
@@ -329,10 +419,13 @@ def _level_speeds(t, theta, starts, ends, k, half) -> dict:
     return out
 
 
-def _no_cycle_message(why: dict, n_legs: int) -> str:
-    """Why a log gave no usable cycle, from the counts of dropped cycles by reason."""
+def _no_cycle_message(why: dict, n_legs: int, left_out: dict | None = None) -> str:
+    """Why a log gave no usable cycle, from the counts of dropped cycles by reason (``left_out``: the flagged
+    ones by flag)."""
     cut = sum(why.values())
-    counts = ", ".join(f"{n} {reason}" for reason, n in why.items() if n)
+    counts = ", ".join(f"{n} {reason}" + (f" ({', '.join(f'{f} {m}' for f, m in left_out.items())})"
+                                          if reason == "flagged" and left_out else "")
+                       for reason, n in why.items() if n)
     if why["no reference slip"] and why["no reference slip"] + why["first of the log"] == cut:
         return (f"the reference slip is missing: no complete leg cycle has a value in the 'slip' column at its "
                 f"midstance ({counts} of {cut} cycles). {NEEDS_SLIP}")
@@ -368,5 +461,7 @@ def concat(sets) -> CycleSet:
         samples=sum((s.samples for s in sets), []),
         dropped=sum(s.dropped for s in sets),
         prev_omega=np.concatenate([s.prev_omega for s in sets]),
+        repaired=sum(s.repaired for s in sets),
+        left_out={f: sum(s.left_out.get(f, 0) for s in sets) for f in sorted({f for s in sets for f in s.left_out})},
         touchdowns=np.concatenate([s.touchdowns for s in sets]),
     )

@@ -89,6 +89,10 @@ def plot_ranking(path, ranking, gap_nominal: float, none_level: float, verdict: 
     return str(path)
 
 
+#: The files :func:`write_all` writes into its directory.
+PLOT_FILES = ("waveforms.png", "gap_by_angle.png", "ranking.png")
+
+
 def write_all(diag, directory) -> list[str]:
     """Write the three PNGs of a :class:`slipest.diagnosis.run.Diagnosis` into ``directory``."""
     os.makedirs(directory, exist_ok=True)
@@ -110,13 +114,13 @@ def write_all(diag, directory) -> list[str]:
         b = diag.predictions[best][sel].mean(axis=0) if best else None
         tag = "never fitted" if lv in held else "fitted level, held-out cycles"
         panels.append((f"slip {lv:g} ({sel.sum()} cycles, {tag})", data, nominal, b))
-    paths = [plot_waveforms(os.path.join(directory, "waveforms.png"), phase, panels, best)]
+    paths = [plot_waveforms(os.path.join(directory, PLOT_FILES[0]), phase, panels, best)]
     after = diag.where.get("after", {}).get("angle_windows")
-    paths.append(plot_windows(os.path.join(directory, "gap_by_angle.png"), diag.where["angle_windows"], after, best))
+    paths.append(plot_windows(os.path.join(directory, PLOT_FILES[1]), diag.where["angle_windows"], after, best))
     if diag.ranking:
         paths.append(
             plot_ranking(
-                os.path.join(directory, "ranking.png"),
+                os.path.join(directory, PLOT_FILES[2]),
                 [c.as_dict() for c in diag.ranking],
                 diag.gap_nominal,
                 diag.thresholds.none_level(diag.noise.bin_g),

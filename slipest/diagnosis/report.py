@@ -78,6 +78,8 @@ def to_dict(d: Diagnosis, logs=()) -> dict:
         "geometry": {"MH": d.geometry.MH, "mF": d.geometry.mF, "lS": d.geometry.lS, "nL": d.geometry.nL},
         "cycles": int(len(d.cycles)),
         "cycles_dropped": int(d.cycles.dropped),
+        "cycles_left_out": {str(k): int(v) for k, v in d.cycles.left_out.items()},
+        "samples_repaired": int(d.cycles.repaired),
         "bins_per_cycle": int(d.cycles.grid.nb),
         "gap_definition": GAP_DEFINITION,
         "units": "gaps in g, angles in rad, parameters SI",
@@ -93,6 +95,21 @@ def _fmt_params(params: dict) -> str:
     return ", ".join(f"{k}={v:.4g}" for k, v in params.items())
 
 
+def data_line(cycles) -> str | None:
+    """What the diagnosis left out of the logs, or None when nothing: the leg cycles replay's segmenter flags
+    (by flag: ``gap``, ``reverse``, ...) and the glitch samples (isolated outliers, any size) left out of the
+    kept cycles."""
+    parts = []
+    if cycles.left_out:
+        n = sum(cycles.left_out.values())
+        parts.append(f"{n} leg cycle{'s' if n != 1 else ''} left out, flagged as replay flags them ("
+                     + ", ".join(f"{f} {m}" for f, m in cycles.left_out.items()) + ")")
+    if cycles.repaired:
+        parts.append(f"{cycles.repaired} glitch sample{'s' if cycles.repaired != 1 else ''} left out "
+                     "(isolated outliers of az)")
+    return "data: " + "; ".join(parts) if parts else None
+
+
 def summary(d: Diagnosis) -> str:
     """A readable multi-line summary."""
     lines = []
@@ -101,6 +118,9 @@ def summary(d: Diagnosis) -> str:
         f"cycles: {len(d.cycles)} ({len(d.split.train)} fitted, {len(d.split.test)} held out; "
         f"slip levels never fitted: {', '.join(f'{s:g}' for s in d.split.heldout_levels) or '-'})"
     )
+    data = data_line(d.cycles)
+    if data:
+        lines.append(data)
     lines.append(
         f"noise floor: {d.noise.bin_g * 1000:.2f} mg per phase bin ({d.noise.source}; raw samples "
         f"{d.noise.sample_g * 1000:.2f} mg)"

@@ -11,7 +11,9 @@ Beside the fits, each log's leg swaps are read for the IMU's timing against
 the encoder (:func:`slipest.swap_timing.swap_summary`), model-free.
 
 Errors name the file: :class:`~slipest.io.log_csv.LogFormatError` (a
-malformed log), ``OSError`` (cannot read it), ``ValueError`` (no slip
+malformed log, or a reference slip outside ``[0, 1)``, e.g. in percent:
+:func:`slipest.offline.reference_slip.check_reference_slip`, checked for
+every log before any cycle is cut), ``OSError`` (cannot read it), ``ValueError`` (no slip
 column, logs that disagree on the hardware, an unknown effect, too few
 cycles).
 """
@@ -26,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slipest.io.log_csv import LogFormatError, read_log
+from slipest.offline.reference_slip import check_reference_slip
 
 __all__ = ["DIAGNOSE_COLUMNS", "DiagnoseOptions", "diagnose_logs", "diagnose_rows", "geometry_of"]
 
@@ -111,7 +114,7 @@ def _check_units(path, az) -> None:
 def diagnose_logs(paths, options: DiagnoseOptions = DiagnoseOptions(), progress=None):
     """Diagnose the logs together; returns the :class:`~slipest.diagnosis.run.Diagnosis`.
     ``progress(done, total, label)`` as :func:`~slipest.diagnosis.run.diagnose` calls it."""
-    from slipest.diagnosis.cycles import concat, cut_cycles
+    from slipest.diagnosis.cycles import concat, cut_cycles, segmenter_flags
     from slipest.diagnosis.fit import FitBudget
     from slipest.diagnosis.predict import Grid
     from slipest.diagnosis.run import diagnose
@@ -122,13 +125,17 @@ def diagnose_logs(paths, options: DiagnoseOptions = DiagnoseOptions(), progress=
     logs = [_read(p) for p in paths]
     geometry = geometry_of(options, [log.metadata for log in logs])
     grid = Grid(geometry.nL)
-    sets = []
-    for k, (path, log) in enumerate(zip(paths, logs)):
+    for path, log in zip(paths, logs):  # every log checked before any work
         if log.slip is None:
             raise LogFormatError("no 'slip' column (the diagnosis needs the imposed slip)", path)
+        check_reference_slip(log.slip, log.t, path)  # a slip in percent or negative: refused, not fitted
+    sets = []
+    for k, (path, log) in enumerate(zip(paths, logs)):
         _check_units(path, log.az)
         try:
-            sets.append(cut_cycles(log.t, log.az, log.theta, log.slip, geometry.nL, grid=grid, log_index=k))
+            flags = segmenter_flags(log.t, log.az, log.theta, geometry.nL)  # replay's flagged cycles: left out
+            sets.append(cut_cycles(log.t, log.az, log.theta, log.slip, geometry.nL, grid=grid, log_index=k,
+                                   flags=flags))
         except ValueError as exc:
             raise ValueError(f"{path}: {exc}") from None
     budget = FitBudget().scaled(0.5) if options.quick else FitBudget()
