@@ -32,3 +32,23 @@ def output_problem(output: str | os.PathLike | None, inputs=(), what: str = "-o"
             if same:
                 return f"{what} {out} is one of the files read ({name}): refusing to write over it"
     return None
+
+
+def table_inputs(logs, output, columns) -> tuple[list[str], list[str]]:
+    """The logs a table command (``replay`` or ``diagnose --per-log`` of many logs) reads when it writes its
+    table to ``output`` (None or ``"-"``: stdout), and the ones it leaves out: a log that is ``output`` and
+    holds the command's own earlier table (:func:`slipest.offline.many.is_table` with ``columns``: a folder's
+    ``table.csv`` from the last run). ``ValueError`` (:func:`output_problem`'s words) when ``output`` cannot
+    be written, e.g. it is one of the other logs: call it before any work."""
+    from slipest.offline.many import is_table
+
+    logs = [str(log) for log in logs]
+    left_out = []
+    if output is not None and str(output) != "-" and os.path.isfile(output):
+        left_out = [log for log in logs if os.path.isfile(log) and os.path.samefile(log, output)
+                    and is_table(log, columns)]
+    kept = [log for log in logs if log not in left_out]
+    problem = output_problem(output, kept)
+    if problem:
+        raise ValueError(problem)
+    return kept, left_out

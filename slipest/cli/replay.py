@@ -27,11 +27,14 @@ ignored by the estimator unless --use-reference is given, so a log with the
 truth in it is still a blind test; --truth only compares.
 
 Several logs or a folder: one summary table instead (per log and wheel:
-cycles, estimated, mean slip, the soil at the end, verdict, error), the
-logs replayed in parallel processes (--jobs) or on a Dask cluster
-(--scheduler, pip install 'slipest[dask]'). Exit status: 1 when a log failed
-(its row says why) or a single log had no cycle estimated (its summary says
-why), 2 on a bad single log or option.
+cycles, estimated, mean slip, the soil at the end, verdict, error: for a
+log with no cycle estimated, what looked wrong with its data), the logs
+replayed in parallel processes (--jobs) or on a Dask cluster (--scheduler,
+pip install 'slipest[dask]'). -o naming one of the logs read (a folder's
+too) is refused; the command's own table from an earlier run, found in a
+folder, is left out (and written over). Exit status: 1 when a log failed
+(its row says why), no log had a cycle estimated, or a single log had no
+cycle estimated (its summary says why), 2 on a bad single log or option.
 
 Examples::
 
@@ -43,18 +46,30 @@ Examples::
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 
 from slipest.cli import estimate_output
 from slipest.cli.command import add_command, leg_count
 from slipest.cli.estimator_args import add_estimator_arguments, soil_from_args
-from slipest.cli.output_paths import output_problem
+from slipest.cli.output_paths import output_problem, table_inputs
 from slipest.online import ESTIMATE_FIELDS
 from slipest.stuck import STUCK_TIME
 
 #: Output columns, in order (a CAN log's rows have ``wheel`` first).
 COLUMNS = ESTIMATE_FIELDS
+
+
+def joint_gap_seconds(text: str) -> float:
+    """``--max-joint-gap``: a finite number of seconds > 0 (argparse type)."""
+    try:
+        s = float(text)
+    except ValueError:
+        s = math.nan
+    if not (math.isfinite(s) and s > 0):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a joint-state gap (a number of seconds > 0)")
+    return s
 
 
 def add_parser(sub) -> None:
@@ -96,7 +111,7 @@ def add_parser(sub) -> None:
     r.add_argument("--slip-topic", default=None, help="std_msgs/msg/Float64 reference slip topic (default: none)")
     r.add_argument("--bag-time", action="store_true",
                    help="time the samples by the bag's receive times, not the header stamps")
-    r.add_argument("--max-joint-gap", type=float, default=None, metavar="S",
+    r.add_argument("--max-joint-gap", type=joint_gap_seconds, default=None, metavar="S",
                    help="longest joint-state step interpolated over [s] (default: 5 median steps)")
     m = p.add_argument_group("many logs")
     m.add_argument("--jobs", type=int, default=None, metavar="N",
@@ -215,6 +230,13 @@ def _replay_many(args, logs: list[str]) -> int:
 
     if args.plot:
         return _fail("--plot draws one log: give one")
+    try:  # before any work: -o naming a log (in a folder too) is refused, our own earlier table left out
+        logs, left_out = table_inputs(logs, args.output, TABLE_COLUMNS)
+    except ValueError as exc:
+        return _fail(str(exc))
+    for old in left_out:
+        print(f"replay: {old} left out: it is this command's table from an earlier run (written over now)",
+              file=sys.stderr)
     if not logs:
         return _fail(f"no log found in {', '.join(args.logs)}")
     try:
@@ -224,7 +246,10 @@ def _replay_many(args, logs: list[str]) -> int:
         return _fail(str(exc))
     save_table(rows, TABLE_COLUMNS, args.output, args.format)
     failed = sorted({r["log"] for r in rows if r["verdict"] == "error"})
-    print(f"replay: {len(logs)} logs, {len(rows)} rows: {sum(r['verdict'] == 'ok' for r in rows)} with estimates, "
+    estimated = sum(r["verdict"] == "ok" for r in rows)
+    print(f"replay: {len(logs)} logs, {len(rows)} rows: {estimated} with estimates, "
           f"{len(failed)} log(s) failed" + (f" (first: {failed[0]})" if failed else "")
           + ("" if args.output == "-" else f"; table in {args.output}"), file=sys.stderr)
-    return 1 if failed else 0
+    if not estimated and not failed:
+        print("replay: no leg cycle was estimated in any log (the error column says why)", file=sys.stderr)
+    return 1 if failed or not estimated else 0

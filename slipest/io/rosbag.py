@@ -150,6 +150,7 @@ class RosBag:
         name = self.joint_name
         t, pos = [], []
         index_of: dict[tuple, int | None] = {}
+        short = 0  # messages that name the joint but hold no position for it
         for _conn, ns, msg in self._messages(self._joint):
             names = tuple(msg.name)
             if name is None:
@@ -162,11 +163,15 @@ class RosBag:
                 k = index_of[names] = names.index(name) if name in names else None
             if k is None or k >= len(msg.position):
                 self.c["joint_missing"] += 1
+                short += k is not None
                 continue
             t.append(ns * 1e-9 if self.topics.bag_time else _stamp(msg))
             pos.append(float(msg.position[k]))
         self.c["joint_states"] = len(t)
         if not t:
+            if short:
+                self._fail(f"the JointState messages on {self.topics.joint_states} name the joint {name!r} but "
+                           f"carry no position for it ({short} message(s) with too few positions)")
             if self.c["joint_missing"]:
                 known = sorted({n for names in index_of for n in names})
                 self._fail(f"no JointState message on {self.topics.joint_states} carries the joint {name!r} "

@@ -34,7 +34,24 @@ from typing import Callable, Sequence
 
 from slipest.extras import import_extra
 
-__all__ = ["run_many", "save_table", "write_table", "format_cell"]
+__all__ = ["run_many", "save_table", "write_table", "format_cell", "is_table"]
+
+
+def is_table(path, columns: Sequence[str]) -> bool:
+    """Whether the file ``path`` is a table this module wrote with these ``columns`` (its first line is
+    their CSV header, or a JSON line with exactly these keys): a command's own earlier output."""
+    try:
+        with open(path, encoding="utf-8", errors="replace") as fh:
+            first = fh.readline().strip()
+    except OSError:
+        return False
+    if first == ",".join(columns):
+        return True
+    try:
+        rec = json.loads(first)
+    except ValueError:
+        return False
+    return isinstance(rec, dict) and list(rec) == list(columns)
 
 
 def _error_row(log, exc: BaseException, columns) -> dict:

@@ -18,7 +18,9 @@ The reference slip (the CSV's ``slip`` column, a bag's slip topic, the CAN
 SlipReference messages) reaches the estimates' ``slip_ref`` only when
 ``carry_reference`` (or ``truth`` / ``use_reference``) is set, as in the
 live commands, and the estimator learns from it only with
-``use_reference``.
+``use_reference``.  With ``use_reference`` or ``truth`` a CSV's or a bag's
+reference outside [0, 1) (slip in percent, a negative sign convention) is
+refused, naming the log, at the chunk that brings it.
 
 :class:`ReplayResult` holds per-wheel tallies and counters;
 :meth:`ReplayResult.summary_lines` is the one place the replay's summary is
@@ -216,11 +218,17 @@ class ReplayResult:
                    if (off := c.get("cycles_off_model", 0) - c.get("flagged_misfit", 0)) > 0 else ""))
 
     @staticmethod
+    def _hint_texts(w: "WheelTally") -> list[str]:
+        """The estimator's hints on a wheel's data (what looks wrong with the input, a model that does not
+        fit it), worded for people: the one wording of the summary's lines and the table's ``error``."""
+        return [text if kind in MODEL_HINTS else f"the input looks wrong: {text}"
+                for kind, text in w.hints.items() if kind != "fit"]
+
+    @staticmethod
     def _advice_lines(prefix: str, w: "WheelTally") -> list[str]:
         """What looks wrong with a wheel's data, and a model that does not fit it, for people."""
         c = w.estimator_counters
-        lines = [f"replay: {prefix}" + (text if kind in MODEL_HINTS else f"the input looks wrong: {text}")
-                 for kind, text in w.hints.items() if kind != "fit"]
+        lines = [f"replay: {prefix}{text}" for text in ReplayResult._hint_texts(w)]
         advice = fit_advice(c.get("cycles_ok", 0) + c.get("flagged_misfit", 0), c.get("cycles_off_model", 0))
         if advice:
             lines.append(f"replay: {prefix}{advice}")
@@ -282,7 +290,9 @@ class ReplayResult:
         return lines
 
     def rows(self) -> list[dict]:
-        """This log's rows of the many-logs table (:data:`TABLE_COLUMNS`), one per wheel."""
+        """This log's rows of the many-logs table (:data:`TABLE_COLUMNS`), one per wheel.  ``error``: the
+        estimator's last error, else, for a wheel with no cycle estimated, the hints on its data that the
+        summary gives (e.g. az in g), joined by ``"; "``."""
         out = []
         for wheel, w in sorted(self.wheels.items(), key=lambda kv: -1 if kv[0] is None else kv[0]):
             last = w.last_ok
@@ -291,7 +301,9 @@ class ReplayResult:
                         "samples": w.estimator_counters.get("samples", 0), "cycles": w.cycles,
                         "estimated": w.estimated, "flagged": w.cycles - w.estimated, "mean_slip": w.mean_slip, **soil,
                         "slip_rmse": w.truth.slip_rmse if w.truth is not None else math.nan,
-                        "verdict": w.verdict, "error": self.last_error or "", "seconds": self.seconds})
+                        "verdict": w.verdict,
+                        "error": self.last_error or ("" if w.estimated else "; ".join(self._hint_texts(w))),
+                        "seconds": self.seconds})
         if not out:
             out.append(error_row(self.log, "no ImuSample frame of a wheel to estimate", self.kind, self.seconds,
                                  verdict="no cycle"))
@@ -384,10 +396,7 @@ class Replay:
     def _run_samples(self, on_estimate):
         est = self._estimator(None)
         tally = self._tally()
-        pass_ref = self.options.pass_reference
-        chunks = ((ch.t, ch.az, ch.theta, ch.slip if pass_ref else None)
-                  for ch in self._reader.iter_chunks(self.options.chunk_rows))
-        for e in est.iter_estimates(chunks):
+        for e in est.iter_estimates(self._sample_chunks()):
             tally.add(e)
             if on_estimate is not None:
                 on_estimate(None, e)
@@ -395,6 +404,20 @@ class Replay:
         tally.hints = est.hints
         source = self._reader.counters() if self.kind == "ros2" else {}
         return {None: tally}, source
+
+    def _sample_chunks(self):
+        """The log's chunks as the estimator takes them, ``(t, az, theta, slip or None)``.  With
+        ``use_reference`` or ``truth`` each chunk's reference slip is checked as it reaches the estimator
+        (:func:`~slipest.offline.reference_slip.check_reference_slip`): the first chunk with a value
+        outside [0, 1) (percent, a negative sign convention) raises ``LogFormatError`` naming the log."""
+        from slipest.offline.reference_slip import check_reference_slip
+
+        o = self.options
+        check = o.use_reference or o.truth
+        for ch in self._reader.iter_chunks(o.chunk_rows):
+            if check and ch.slip is not None:
+                check_reference_slip(ch.slip, ch.t, self.source_name)
+            yield ch.t, ch.az, ch.theta, ch.slip if o.pass_reference else None
 
     def _run_frames(self, on_estimate):
         from slipest.live.estimation import LiveEstimation

@@ -1,0 +1,184 @@
+"""Guards of the many-logs replay (and `diagnose --per-log`): -o never writes over a log it reads (a folder's
+too), the command's own earlier table in the folder is left out; a folder where no log gave an estimate says
+why in the table and exits 1; a reference slip outside [0, 1) is refused by --use-reference and --truth;
+ROS 2 bag joint states without positions and a bad --max-joint-gap get messages that say what is wrong."""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+
+import numpy as np
+import pytest
+
+from slipest.cli.main import main
+from slipest.io.log_csv import LogWriter
+from slipest.offline.replay import TABLE_COLUMNS
+from tests.log_makers import stream, write_csv
+
+
+def _md5(path) -> str:
+    return hashlib.md5(path.read_bytes()).hexdigest()
+
+
+@pytest.fixture(scope="module")
+def drive():
+    return stream(4, seed=3)
+
+
+def _table(path) -> list[dict]:
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+# -- D3: -o naming a log in a folder ----------------------------------------------------------------------------
+
+
+def test_replay_folder_refuses_an_output_that_is_one_of_its_logs(drive, tmp_path, capsys):
+    s, sc = drive
+    folder = tmp_path / "drives"
+    folder.mkdir()
+    log = write_csv(folder / "run1.csv", s, sc)
+    before = _md5(log)
+    rc = main(["replay", str(folder), "-o", str(log), "--no-progress", "--jobs", "1"])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert "refusing to write over it" in err and str(log) in err
+    assert _md5(log) == before  # the drive log is untouched
+
+
+def test_replay_folder_leaves_out_its_own_earlier_table(drive, tmp_path, capsys):
+    s, sc = drive
+    folder = tmp_path / "drives"
+    folder.mkdir()
+    write_csv(folder / "run1.csv", s, sc)
+    out = folder / "table.csv"
+    assert main(["replay", str(folder), "-o", str(out), "--no-progress", "--jobs", "1"]) == 0
+    capsys.readouterr()
+    rc = main(["replay", str(folder), "-o", str(out), "--no-progress", "--jobs", "1"])  # the table is there now
+    err = capsys.readouterr().err
+    assert rc == 0
+    assert f"{out} left out" in err
+    rows = _table(out)
+    assert [r["log"] for r in rows] == [str(folder / "run1.csv")]
+    assert rows[0]["verdict"] == "ok"
+
+
+def test_diagnose_per_log_refuses_an_output_that_is_one_of_its_logs(drive, tmp_path, capsys):
+    s, sc = drive
+    folder = tmp_path / "dg"
+    folder.mkdir()
+    log = write_csv(folder / "tb.csv", s, sc)
+    before = _md5(log)
+    rc = main(["diagnose", "--per-log", str(folder), "-o", str(log), "--quick", "--no-progress", "--jobs", "1"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "refusing to write over it" in err and str(log) in err
+    assert _md5(log) == before
+
+
+# -- D4: no log of a folder gave an estimate ----------------------------------------------------------------------
+
+
+def test_replay_folder_without_any_estimate_says_why_in_the_rows_and_exits_1(drive, tmp_path, capsys):
+    s, sc = drive
+    folder = tmp_path / "units"
+    folder.mkdir()
+    with LogWriter(folder / "g.csv", ("t", "az", "theta", "slip"), metadata=sc.metadata()) as w:
+        w.write(s.t, s.az / 9.81, s.theta, s.slip)  # az logged in g
+    rc_one = main(["replay", str(folder / "g.csv"), "-o", str(tmp_path / "one.csv")])
+    hint = [line[len("replay: "):] for line in capsys.readouterr().err.splitlines() if "in g" in line]
+    assert rc_one == 1 and len(hint) == 1
+    out = tmp_path / "table.csv"
+    rc = main(["replay", str(folder), "-o", str(out), "--no-progress", "--jobs", "1"])
+    err = capsys.readouterr().err
+    assert rc == 1  # as the single log: no cycle estimated is not a success
+    assert "no leg cycle was estimated in any log" in err
+    (row,) = _table(out)
+    assert row["verdict"] == "no cycle estimated"
+    assert row["error"] == hint[0]  # the single-log replay's very words
+
+
+# -- D9: a reference slip outside [0, 1) ----------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def percent_log(drive, tmp_path_factory):
+    s, sc = drive
+    path = tmp_path_factory.mktemp("pct") / "slip_percent.csv"
+    with LogWriter(path, ("t", "az", "theta", "slip"), metadata=sc.metadata()) as w:
+        w.write(s.t, s.az, s.theta, s.slip * 100)
+    return path
+
+
+@pytest.mark.parametrize("flags", [["--use-reference"], ["--truth"], ["--use-reference", "--truth"]])
+def test_replay_refuses_a_reference_slip_in_percent(percent_log, flags, capsys):
+    rc = main(["replay", str(percent_log), "--chunk-rows", "500", *flags])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert str(percent_log) in err and "outside [0, 1)" in err and "in percent?" in err
+    assert "truth: slip" not in err  # no RMSE against the impossible reference
+    assert main(["replay", str(percent_log)]) == 0  # a blind replay does not read the reference
+    capsys.readouterr()
+
+
+def test_folder_replay_with_use_reference_gives_the_percent_log_an_error_row(drive, percent_log, tmp_path, capsys):
+    out = tmp_path / "table.csv"
+    rc = main(["replay", str(percent_log), str(write_csv(tmp_path / "good.csv", *drive)), "--use-reference",
+               "-o", str(out), "--no-progress", "--jobs", "1"])
+    capsys.readouterr()
+    rows = {r["log"]: r for r in _table(out)}
+    assert rc == 1
+    assert rows[str(percent_log)]["verdict"] == "error" and "in percent?" in rows[str(percent_log)]["error"]
+    assert rows[str(tmp_path / "good.csv")]["verdict"] == "ok"
+
+
+# -- D7: ROS 2 bags ---------------------------------------------------------------------------------------------------
+
+
+def _bag_without_positions(path, s, n=600):
+    """A bag whose JointState messages name the joints but carry an empty position array."""
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    T = ts.types
+    Imu, JointState = T["sensor_msgs/msg/Imu"], T["sensor_msgs/msg/JointState"]
+    Header, Time = T["std_msgs/msg/Header"], T["builtin_interfaces/msg/Time"]
+    Vector3, Quaternion = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"]
+    cov = np.zeros(9)
+    with Writer(path, version=9) as w:
+        c_imu = w.add_connection("/imu", Imu.__msgtype__, typestore=ts)
+        c_js = w.add_connection("/joint_states", JointState.__msgtype__, typestore=ts)
+        for i in range(n):
+            ns = int(round((1.7e9 + float(s.t[i])) * 1e9))
+            header = Header(stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id="hub")
+            if i % 5 == 0:
+                msg = JointState(header=header, name=["steer", "wheel_leg"], position=np.zeros(0),
+                                 velocity=np.zeros(0), effort=np.zeros(0))
+                w.write(c_js, ns, ts.serialize_cdr(msg, JointState.__msgtype__))
+            msg = Imu(header=header, orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0), orientation_covariance=cov,
+                      angular_velocity=Vector3(x=0.0, y=0.0, z=0.0), angular_velocity_covariance=cov,
+                      linear_acceleration=Vector3(x=0.0, y=0.0, z=float(s.az[i])),
+                      linear_acceleration_covariance=cov)
+            w.write(c_imu, ns, ts.serialize_cdr(msg, Imu.__msgtype__))
+    return str(path)
+
+
+def test_bag_joint_states_naming_the_joint_without_positions_say_so(drive, tmp_path, capsys):
+    pytest.importorskip("rosbags")
+    bag = _bag_without_positions(tmp_path / "emptypos", drive[0])
+    rc = main(["replay", bag, "--joint", "wheel_leg"])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert "name the joint 'wheel_leg' but carry no position for it" in err
+    assert "no JointState message" not in err
+
+
+@pytest.mark.parametrize("gap", ["-1", "0", "nan", "inf"])
+def test_max_joint_gap_refuses_non_positive_and_non_finite_values(gap, tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["replay", str(tmp_path / "bag"), "--max-joint-gap", gap])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "--max-joint-gap" in err and "a number of seconds > 0" in err
+
