@@ -76,12 +76,13 @@ def write_can_log(path, frames) -> str:
 
 def write_bag(path, s, *, storage: str = "sqlite3", t0: float = 1.7e9, joint_every: int = 5,
               joints=("steer", "wheel_leg"), slip_topic: str | None = "/slip", zero_stamps: bool = False,
-              joint_hole=None) -> str:
+              joint_hole=None, positions: bool = True) -> str:
     """A rosbag2 bag written with rosbags: sensor_msgs/Imu on /imu (az as linear_acceleration.z, every
     sample), sensor_msgs/JointState on /joint_states every ``joint_every`` samples (the wheel-leg
     angle wrapped to [-pi, pi) under the last of ``joints``, the others at fixed positions), and
     std_msgs/Float64 reference slips on ``slip_topic`` whenever the slip changes.  Header stamps
-    ``t0 + t`` (zero with ``zero_stamps``); ``joint_hole``: (t_from, t_to) without joint states."""
+    ``t0 + t`` (zero with ``zero_stamps``); ``joint_hole``: (t_from, t_to) without joint states;
+    ``positions`` False: the joint states name the joints but carry an empty position array."""
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -107,7 +108,7 @@ def write_bag(path, s, *, storage: str = "sqlite3", t0: float = 1.7e9, joint_eve
             in_hole = joint_hole is not None and joint_hole[0] <= s.t[i] < joint_hole[1]
             if i % joint_every == 0 and not in_hole:
                 angle = (float(s.theta[i]) + math.pi) % (2 * math.pi) - math.pi
-                pos = np.array([0.1] * (len(joints) - 1) + [angle])
+                pos = np.array([0.1] * (len(joints) - 1) + [angle]) if positions else np.zeros(0)
                 msg = JointState(header=header, name=list(joints), position=pos, velocity=np.zeros(0),
                                  effort=np.zeros(0))
                 w.write(c_js, ns_total, ts.serialize_cdr(msg, JointState.__msgtype__))

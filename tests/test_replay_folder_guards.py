@@ -8,13 +8,12 @@ from __future__ import annotations
 import csv
 import hashlib
 
-import numpy as np
 import pytest
 
 from slipest.cli.main import main
 from slipest.io.log_csv import LogWriter
 from slipest.offline.replay import TABLE_COLUMNS
-from tests.log_makers import stream, write_csv
+from tests.log_makers import stream, write_bag, write_csv
 
 
 def _md5(path) -> str:
@@ -135,38 +134,9 @@ def test_folder_replay_with_use_reference_gives_the_percent_log_an_error_row(dri
 # -- D7: ROS 2 bags ---------------------------------------------------------------------------------------------------
 
 
-def _bag_without_positions(path, s, n=600):
-    """A bag whose JointState messages name the joints but carry an empty position array."""
-    from rosbags.rosbag2 import Writer
-    from rosbags.typesys import Stores, get_typestore
-
-    ts = get_typestore(Stores.ROS2_HUMBLE)
-    T = ts.types
-    Imu, JointState = T["sensor_msgs/msg/Imu"], T["sensor_msgs/msg/JointState"]
-    Header, Time = T["std_msgs/msg/Header"], T["builtin_interfaces/msg/Time"]
-    Vector3, Quaternion = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"]
-    cov = np.zeros(9)
-    with Writer(path, version=9) as w:
-        c_imu = w.add_connection("/imu", Imu.__msgtype__, typestore=ts)
-        c_js = w.add_connection("/joint_states", JointState.__msgtype__, typestore=ts)
-        for i in range(n):
-            ns = int(round((1.7e9 + float(s.t[i])) * 1e9))
-            header = Header(stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id="hub")
-            if i % 5 == 0:
-                msg = JointState(header=header, name=["steer", "wheel_leg"], position=np.zeros(0),
-                                 velocity=np.zeros(0), effort=np.zeros(0))
-                w.write(c_js, ns, ts.serialize_cdr(msg, JointState.__msgtype__))
-            msg = Imu(header=header, orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0), orientation_covariance=cov,
-                      angular_velocity=Vector3(x=0.0, y=0.0, z=0.0), angular_velocity_covariance=cov,
-                      linear_acceleration=Vector3(x=0.0, y=0.0, z=float(s.az[i])),
-                      linear_acceleration_covariance=cov)
-            w.write(c_imu, ns, ts.serialize_cdr(msg, Imu.__msgtype__))
-    return str(path)
-
-
 def test_bag_joint_states_naming_the_joint_without_positions_say_so(drive, tmp_path, capsys):
     pytest.importorskip("rosbags")
-    bag = _bag_without_positions(tmp_path / "emptypos", drive[0])
+    bag = write_bag(tmp_path / "emptypos", drive[0], positions=False)
     rc = main(["replay", bag, "--joint", "wheel_leg"])
     err = capsys.readouterr().err
     assert rc == 2
