@@ -4,7 +4,8 @@ The core install runs a rover's estimator; what only some users need comes
 with an extra of the ``slipest`` package: ``plot`` (matplotlib: ``slipest
 replay --plot``, ``slipest diagnose --plots``, the scripts in ``tools/``),
 ``ros`` (rosbags: ROS 2 bags), ``dask`` (dask.distributed: many logs on a
-cluster), ``view`` (foxglove-sdk: the live view, ``--view``).
+cluster), ``view`` (foxglove-sdk: the live view, ``--view``), ``mf4``
+(asammdf: ``.mf4`` CAN logs, recorded and replayed through python-can).
 :func:`import_extra` imports a module of one of them, and raises
 :class:`MissingExtra` (an ``ImportError``) saying which extra to install
 when it is not there.

@@ -66,6 +66,23 @@ def can_frames(streams: dict, *, time_scale: float = 1.0, t0: float = 1000.0, dr
     return out
 
 
+def with_references(frames, replace: dict) -> list[can.Message]:
+    """``frames`` with the k-th SlipReference frame's slip replaced by ``replace[k]`` (timestamp, channel,
+    wheel, counter and time kept): e.g. a negative slip, which the DBC's signed field carries, or 1.5."""
+    from slipest.io.can_messages import SlipReferenceMessage, decode
+
+    out, k = [], 0
+    for m in frames:
+        rec = decode(m)
+        if isinstance(rec, SlipReferenceMessage):
+            if k in replace:
+                bad = encode_slip_reference(rec.wheel, rec.counter, replace[k], rec.time_mod)
+                bad.timestamp, bad.channel, m = m.timestamp, m.channel, bad
+            k += 1
+        out.append(m)
+    return out
+
+
 def write_can_log(path, frames) -> str:
     """The frames written with python-can's writer for the file's suffix (can.Logger)."""
     with can.Logger(str(path)) as writer:

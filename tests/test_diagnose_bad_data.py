@@ -1,8 +1,11 @@
-"""`slipest diagnose` on bad data: what replay repairs or flags is repaired or left out, and said; what cannot be
-diagnosed (a reference slip outside [0, 1), a --plots that is no directory) is refused before any work.
+"""`slipest diagnose` on bad data: what replay repairs or flags is repaired or left out, and said (in the --per-log
+table too); what cannot be diagnosed (a reference slip outside [0, 1), a --plots that is no directory) is refused
+before any work; a ROS 2 bag is read as replay reads it.
 
 Real log files, the real CLI (in-process), small simulated logs."""
 
+import csv
+import importlib.util
 import json
 import time
 
@@ -14,6 +17,9 @@ from slipest.io.log_csv import LogWriter
 from slipest.model.params import StickSlipParams
 from slipest.model.scenario import Scenario
 from slipest.model.stream import simulate_stream
+from slipest.offline.diagnose import DIAGNOSE_COLUMNS
+from tests.cli_support import slipest_in_process
+from tests.log_makers import write_bag
 
 COLUMNS = ("t", "az", "theta", "slip")
 META = {"nL": "4", "MH": "1", "mF": "0.2", "lS": "0.1763"}
@@ -141,3 +147,56 @@ def test_plots_into_a_new_directory_still_work(tmp_path, capsys):
     rc, _, err, _ = _diagnose([str(log), *FAST, "--plots", str(tmp_path / "new" / "png")], capsys)
     assert rc == 0, err
     assert sorted(p.name for p in (tmp_path / "new" / "png").iterdir())[:2] == ["gap_by_angle.png", "waveforms.png"]
+
+
+def test_a_ros2_bag_is_diagnosed_as_the_same_samples_in_a_csv(offset_run, tmp_path, capsys):
+    """`slipest diagnose BAG_DIR` (it said "Is a directory") reads the bag as replay reads it (--slip-topic, --joint
+    ...): the diagnosis of the same samples as in a CSV; without a slip topic it is refused, naming the option."""
+    pytest.importorskip("rosbags")
+    s = offset_run
+    csv_log = _write(tmp_path / "drive.csv", s.t, s.az, s.theta, s.slip)
+    bag = write_bag(tmp_path / "drive_bag", s)  # two joints: --joint names the wheel-leg's
+    rc, out, _, ref = _diagnose([str(csv_log), *FAST, "--json", str(tmp_path / "csv.json")], capsys)
+    assert rc == 0 and ref["verdict"] == "angle_offset", out
+    argv = [bag, "--joint", "wheel_leg", "--slip-topic", "/slip", *FAST, "--json", str(tmp_path / "bag.json")]
+    rc, out, err, doc = _diagnose(argv, capsys)
+    assert rc == 0, err
+    assert doc["verdict"] == "angle_offset" and doc["cycles"] == ref["cycles"] and doc["logs"] == [bag]
+    assert doc["gap_nominal"] == pytest.approx(ref["gap_nominal"], rel=1e-4)
+    assert doc["nominal"]["soil"]["kS"] == pytest.approx(ref["nominal"]["soil"]["kS"], rel=1e-4)
+    rc, err = slipest_in_process(capsys, "diagnose", bag, "--joint", "wheel_leg", *FAST)
+    assert rc == 1 and f"{bag}: no reference slip topic (--slip-topic)" in err and "Traceback" not in err, err
+
+
+def test_the_per_log_table_counts_the_cycles_and_glitch_samples_left_out(offset_run, tmp_path, capsys):
+    """--per-log rows carry what the single report's 'data:' line says: the glitch samples (one az of 1e4 m/s^2)
+    and the cycles the segmenter flags (a logger pause: gap) left out; a bag in the folder is diagnosed too."""
+    folder = tmp_path / "drives"
+    folder.mkdir()
+    s = offset_run
+    az = s.az.copy()
+    az[az.size // 2] = 1e4
+    glitch = _write(folder / "glitch.csv", s.t, az, s.theta, s.slip)
+    p = _stream(np.full(6, 0.2), seed=1)
+    t = p.t.copy()
+    t[7000:] += 100.0
+    pause = _write(folder / "pause.csv", t, p.az, p.theta, p.slip)
+    with_bag = importlib.util.find_spec("rosbags") is not None  # the [ros] extra
+    if with_bag:
+        write_bag(folder / "clean_bag", s, joints=("wheel_leg",))
+    out = tmp_path / "table.csv"
+    rc, _, err, _ = _diagnose(["--per-log", str(folder), "-o", str(out), "--jobs", "1", "--slip-topic", "/slip",
+                               *FAST], capsys)
+    assert rc == 0, err
+    with open(out, newline="") as fh:
+        rows = {r["log"]: r for r in csv.DictReader(fh)}
+    assert list(next(iter(rows.values()))) == list(DIAGNOSE_COLUMNS)
+    assert rows[str(glitch)]["verdict"] == "angle_offset", rows[str(glitch)]
+    assert (rows[str(glitch)]["samples_repaired"], rows[str(glitch)]["cycles_left_out"]) == ("1", "0")
+    assert rows[str(pause)]["verdict"] == "none", rows[str(pause)]
+    assert (rows[str(pause)]["samples_repaired"], rows[str(pause)]["cycles_left_out"]) == ("0", "1")
+    assert len(rows) == 2 + with_bag
+    if with_bag:
+        bag_row = rows[str(folder / "clean_bag")]
+        assert bag_row["verdict"] == "angle_offset", bag_row
+        assert (bag_row["samples_repaired"], bag_row["cycles_left_out"]) == ("0", "0")

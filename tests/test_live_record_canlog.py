@@ -9,6 +9,8 @@ import json
 import math
 import os
 import signal
+import subprocess
+import sys
 import time
 
 import can
@@ -146,15 +148,27 @@ def test_frame_logs_python_can_cannot_write_or_replay_cannot_read_are_refused(tm
         FrameRecorder(str(tmp_path / name))
 
 
-def test_mf4_needs_asammdf(tmp_path):
-    try:
-        import asammdf  # noqa: F401
-    except ImportError:
-        with pytest.raises(ValueError, match="asammdf"):
-            FrameRecorder(str(tmp_path / "x.mf4"))
-    else:
-        rec = FrameRecorder(str(tmp_path / "x.mf4"))
-        rec.close()
+def test_mf4_needs_asammdf_and_says_which_extra_brings_it(tmp_path):
+    """Without asammdf (hidden from a fresh interpreter here), recording a .mf4 and replaying one are refused
+    naming `pip install 'slipest[mf4]'` (python-can's own message names its extra, not slipest's); with it (the
+    [mf4] extra, in [test]) a recorder opens."""
+    hidden = "import sys; sys.modules['asammdf'] = None\n"
+    record = hidden + ("from slipest.live.recording import FrameRecorder\n"
+                       "try:\n    FrameRecorder(sys.argv[1])\nexcept ValueError as exc:\n    sys.exit(str(exc))\n")
+    p = subprocess.run([sys.executable, "-c", record, str(tmp_path / "x.mf4")], capture_output=True, text=True,
+                       timeout=120)
+    assert p.returncode == 1 and "pip install 'slipest[mf4]'" in p.stderr and "x.mf4" in p.stderr, p.stderr
+    assert not (tmp_path / "x.mf4").exists()
+    drive = tmp_path / "drive.mf4"
+    drive.write_bytes(b"MDF     4.10    ")  # refused on opening, before a byte is read
+    replay = hidden + "from slipest.cli.main import main\nsys.exit(main(['replay', sys.argv[1]]))\n"
+    p = subprocess.run([sys.executable, "-c", replay, str(drive)], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2 and "pip install 'slipest[mf4]'" in p.stderr and "drive.mf4" in p.stderr, p.stderr
+    assert "Traceback" not in p.stderr and p.stdout == ""
+    pytest.importorskip("asammdf")
+    rec = FrameRecorder(str(tmp_path / "y.mf4"))
+    rec.close()
+    assert (tmp_path / "y.mf4").stat().st_size > 0
 
 
 @pytest.mark.parametrize("name,kind", [("a.csv", "samples"), ("a.CSV", "samples"), ("run", "samples"),

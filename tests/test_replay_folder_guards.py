@@ -1,7 +1,8 @@
 """Guards of the many-logs replay (and `diagnose --per-log`): -o never writes over a log it reads (a folder's
 too), the command's own earlier table in the folder is left out; a folder where no log gave an estimate says
 why in the table and exits 1; a reference slip outside [0, 1) is refused by --use-reference and --truth;
-ROS 2 bag joint states without positions and a bad --max-joint-gap get messages that say what is wrong."""
+ROS 2 bag joint states without positions and a bad --max-joint-gap get messages that say what is wrong; --jobs
+below 1 is a usage error."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import pytest
 from slipest.cli.main import main
 from slipest.io.log_csv import LogWriter
 from slipest.offline.replay import TABLE_COLUMNS
+from tests.cli_support import slipest_in_process
 from tests.log_makers import stream, write_bag, write_csv
 
 
@@ -152,3 +154,20 @@ def test_max_joint_gap_refuses_non_positive_and_non_finite_values(gap, tmp_path,
     err = capsys.readouterr().err
     assert "--max-joint-gap" in err and "a number of seconds > 0" in err
 
+
+
+# -- --jobs ---------------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("jobs", ["0", "-1", "two"])
+@pytest.mark.parametrize("command", [["replay"], ["diagnose", "--per-log"]])
+def test_jobs_below_one_is_refused_by_the_arguments(command, jobs, drive, tmp_path, capsys):
+    """--jobs 0 and -1 were taken (0 as one per core, -1 as one in this process): refused as a usage error naming
+    --jobs before any log is read, as --legs is."""
+    folder = tmp_path / "drives"
+    folder.mkdir()
+    write_csv(folder / "run1.csv", *drive)
+    out = tmp_path / "table.csv"
+    rc, err = slipest_in_process(capsys, *command, folder, "-o", out, "--no-progress", "--jobs", jobs)
+    assert rc == 2 and f"argument --jobs: {jobs!r} is not a number of worker processes (a whole number >= 1)" in err
+    assert not out.exists()

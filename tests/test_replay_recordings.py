@@ -11,6 +11,7 @@ import subprocess
 import sys
 import time
 
+import can
 import numpy as np
 import pytest
 
@@ -18,8 +19,9 @@ from slipest.cli.estimate_output import parse_rows
 from slipest.cli.main import main
 from slipest.io.can_messages import TIME_MOD_PERIOD, decode
 from slipest.online import ESTIMATE_FIELDS, SlipEstimator
+from tests.cli_support import slipest_in_process
 from tests.hil_support import PY, Stopping, can_server, slipest_cmd, socketcand_args
-from tests.log_makers import can_frames, stream, write_bag, write_can_log, write_csv
+from tests.log_makers import can_frames, stream, with_references, write_bag, write_can_log, write_csv
 
 PERIOD = 2 * math.pi / (4 * 0.63)
 
@@ -61,8 +63,10 @@ def two_wheels_offline(two_wheels):
     return {wheel: _offline(s) for wheel, s in two_wheels.items()}
 
 
-@pytest.mark.parametrize("suffix", [".blf", ".asc", ".log", ".trc", ".csv", ".asc.gz"])
+@pytest.mark.parametrize("suffix", [".blf", ".asc", ".log", ".trc", ".csv", ".asc.gz", ".mf4"])
 def test_python_can_log_formats_replay_every_wheel(suffix, two_wheels, two_wheels_offline, tmp_path, capsys):
+    if suffix == ".mf4":
+        pytest.importorskip("asammdf")  # the [mf4] extra (in [test])
     frames = can_frames(two_wheels, unknown_every=400)
     log = write_can_log(tmp_path / f"drive{suffix}", frames)
     rc, out, err = replay([log], capsys)
@@ -113,6 +117,22 @@ def test_a_can_log_python_can_cannot_parse_is_named_with_its_frame(two_wheels, t
     assert rc == 2 and "bad.log" in err and "frame 10" in err  # the rows before it are out already
     rc, out, err = replay([tmp_path / "drive.xyz", "--log-format", "can"], capsys)
     assert rc == 2 and "suffix" in err
+
+
+def test_a_can_log_reference_outside_0_1_is_refused_when_learnt_from_and_skipped_otherwise(tmp_path, capsys):
+    """A SlipReference of -0.2 or 1.5 in a CAN log: --use-reference and --truth refuse the log as they refuse such
+    a CSV (check_reference_slip), naming the file and the frame's time; a plain replay skips and counts them as
+    `slipest can` does, beside the invalid ones."""
+    s, _ = stream(4, seed=11, slip=[0.1, 0.2, 0.3, 0.4])
+    log = write_can_log(tmp_path / "drive.blf", with_references(can_frames({0: s}), {1: -0.2, 2: 1.5}))
+    with can.LogReader(log) as reader:  # the time the log holds for the frame (a BLF's, from its start)
+        when = next(m.timestamp for m in reader if getattr(decode(m), "slip", 0.0) < 0)
+    for flag in ("--use-reference", "--truth"):
+        rc, err = slipest_in_process(capsys, "replay", log, flag)
+        assert rc == 2 and f"{log}: slip -0.2 at t = {when:.3f} s is outside [0, 1)" in err, err
+        assert "SlipReference frame(s) so" in err and "Traceback" not in err
+    rc, out, err = replay([log], capsys)
+    assert rc == 0 and "2 references outside [0, 1) skipped" in err, err
 
 
 # --- against a live run over a real bus ---------------------------------------------------------------

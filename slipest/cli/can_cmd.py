@@ -5,9 +5,11 @@ Receives the ImuSample (and SlipReference) messages of the DBC
 wheel-leg, prints one row per leg cycle as it closes (the columns of
 ``slipest replay``, wheel first) and sends one SlipEstimate message per leg
 cycle back on the bus (``--no-publish`` to only listen).  Bus errors and a
-dead socketcand server are reported and the bus reconnected; unknown IDs and
-bad frames are counted and skipped; a cycle that lost a message is flagged,
-never estimated.  Counters at exit and on SIGUSR1.  ``--record drive.blf``
+dead socketcand server are reported and the bus reconnected; unknown IDs,
+bad frames and reference slips flagged invalid or outside [0, 1) are
+counted and skipped (references_invalid, references_out_of_range); a cycle
+that lost a message is flagged, never estimated.  Counters at exit and on
+SIGUSR1.  ``--record drive.blf``
 (or ``.asc``, ``.log``...) records every frame received in a python-can
 log, which ``slipest replay`` turns into the same estimates; ``--view
 PORT`` shows the run live in Foxglove (docs/live-view.md).

@@ -37,6 +37,17 @@ def leg_count(text: str) -> int:
     return n
 
 
+def job_count(text: str) -> int:
+    """``--jobs``: a whole number of worker processes >= 1 (argparse type)."""
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of worker processes (a whole number >= 1)")
+    return n
+
+
 def seed_number(text: str) -> int:
     """``--seed``: a whole number >= 0, as numpy's generators take (argparse type)."""
     try:

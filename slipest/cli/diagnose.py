@@ -3,7 +3,8 @@
 Reads one or more logs (the CSV format of :mod:`slipest.io.log_csv`, with the
 ``slip`` column: slip imposed and logged, soil unknown; a live recording has
 it only when the device sent reference slips, else the error says the
-reference slip is missing), cuts them into leg cycles and runs
+reference slip is missing; or ROS 2 bags, read as replay reads them, the
+slip from --slip-topic), cuts them into leg cycles and runs
 :func:`slipest.diagnosis.run.diagnose`: fits the nominal
 model's soil, localises the remaining gap, refits soil + each catalog effect
 on training cycles, compares held-out gaps and names the effect, ``none`` or
@@ -22,9 +23,10 @@ samples_repaired). --json, -o and --plots (a directory that exists or can
 be created) are checked before the diagnosis (exit 2).
 
 Many drives: --per-log diagnoses each log on its own (a folder: its *.csv
-logs, recursively) and writes one table, a row per log (cycles, mean slip,
-fitted soil, gaps, verdict, error), in parallel processes (--jobs) or on a
-Dask cluster (--scheduler, pip install 'slipest[dask]'); exit status 1 when
+logs, recursively, and its ROS 2 bags with --slip-topic) and writes one
+table, a row per log (cycles, cycles left out, glitch samples left out,
+mean slip, fitted soil, gaps, verdict, error), in parallel processes
+(--jobs) or on a Dask cluster (--scheduler, pip install 'slipest[dask]'); exit status 1 when
 a log failed (its row says why). --plots needs matplotlib (pip install
 'slipest[plot]').
 """
@@ -35,14 +37,16 @@ import argparse
 import json
 import sys
 
-from slipest.cli.command import add_command, leg_count
+from slipest.cli.command import add_command, job_count, leg_count
 from slipest.cli.output_paths import output_problem, table_inputs
+from slipest.cli.replay import add_bag_arguments, bag_topics_from_args
 
 
 def add_parser(sub) -> None:
     p = add_command(sub, "diagnose", "explain the gap between real logs and the model with the sim-to-real effect "
                     "catalog", __doc__)
-    p.add_argument("logs", nargs="+", metavar="LOG.csv", help="log files (t, az, theta, slip), or folders with --per-log")
+    p.add_argument("logs", nargs="+", metavar="LOG",
+                   help="log files (t, az, theta, slip) or ROS 2 bags (--slip-topic), or folders with --per-log")
     p.add_argument("--json", metavar="FILE", help="write the report as JSON (keys verdict, gap_nominal, where, ranking, ...)")
     p.add_argument("--plots", metavar="DIR", help="write PNG plots (waveforms, gap by angle, ranking) into DIR "
                    "(pip install 'slipest[plot]')")
@@ -56,11 +60,13 @@ def add_parser(sub) -> None:
     p.add_argument("--mF", type=float, default=None, help="foot mass [kg] (default: metadata, else 0.2)")
     p.add_argument("--lS", type=float, default=None, help="spoke length [m] (default: metadata, else 0.1763)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    add_bag_arguments(p)
     m = p.add_argument_group("many logs")
     m.add_argument("--per-log", action="store_true", help="diagnose each log on its own and write one table")
     m.add_argument("-o", "--output", default="-", help="the --per-log table (default: stdout)")
     m.add_argument("--format", choices=("csv", "jsonl"), default="csv", help="the --per-log table's format")
-    m.add_argument("--jobs", type=int, default=None, metavar="N", help="worker processes (default: one per core)")
+    m.add_argument("--jobs", type=job_count, default=None, metavar="N",
+                   help="worker processes, >= 1 (default: one per core)")
     m.add_argument("--scheduler", metavar="ADDRESS",
                    help="run on this Dask cluster (e.g. tcp://10.0.0.5:8786; pip install 'slipest[dask]')")
     p.set_defaults(func=run)
@@ -116,7 +122,7 @@ def options_from_args(args):
     if args.effects:
         effects = tuple(e.strip() for e in args.effects.split(",") if e.strip())
     return DiagnoseOptions(effects=effects, rank_all=args.rank_all, quick=args.quick, seed=args.seed, legs=args.legs,
-                           MH=args.MH, mF=args.mF, lS=args.lS)
+                           MH=args.MH, mF=args.mF, lS=args.lS, bag=bag_topics_from_args(args))
 
 
 def _progress_bar(args):
@@ -162,7 +168,7 @@ def run(args: argparse.Namespace) -> int:
     bar, progress = _progress_bar(args)
     try:
         diag = diagnose_logs(args.logs, options, progress=progress)
-    except (ValueError, OSError) as exc:  # LogFormatError is a ValueError; both name the file
+    except (ValueError, OSError, MissingExtra) as exc:  # LogFormatError is a ValueError; all name the file or extra
         _fail(str(exc))
     finally:
         if bar is not None:
@@ -187,7 +193,8 @@ def _per_log(args, options) -> int:
 
     if args.json or args.plots:
         _fail("--json and --plots report one diagnosis: not with --per-log")
-    logs = expand_logs(args.logs, kinds=("slipest",))
+    # a folder's bags only when --slip-topic says where their slip is (without it, a bag cannot be diagnosed)
+    logs = expand_logs(args.logs, kinds=("slipest", "ros2") if args.slip_topic else ("slipest",))
     if not logs:
         _fail(f"no log found in {', '.join(args.logs)}")
     try:  # before any work: -o naming a log is refused (exit 2, as run's), our own earlier table left out

@@ -51,7 +51,7 @@ import os
 import sys
 
 from slipest.cli import estimate_output
-from slipest.cli.command import add_command, leg_count
+from slipest.cli.command import add_command, job_count, leg_count
 from slipest.cli.estimator_args import add_estimator_arguments, soil_from_args
 from slipest.cli.output_paths import output_problem, table_inputs
 from slipest.online import ESTIMATE_FIELDS
@@ -70,6 +70,29 @@ def joint_gap_seconds(text: str) -> float:
     if not (math.isfinite(s) and s > 0):
         raise argparse.ArgumentTypeError(f"{text!r} is not a joint-state gap (a number of seconds > 0)")
     return s
+
+
+def add_bag_arguments(p) -> None:
+    """The options saying where a ROS 2 bag's samples are (:class:`~slipest.io.rosbag.BagTopics`), shared by the
+    commands that read bags (``replay``, ``diagnose``): :func:`bag_topics_from_args` reads them back."""
+    r = p.add_argument_group("ROS 2 bags")
+    r.add_argument("--imu-topic", default="/imu", help="sensor_msgs/msg/Imu topic (default /imu)")
+    r.add_argument("--joint-states-topic", default="/joint_states",
+                   help="sensor_msgs/msg/JointState topic (default /joint_states)")
+    r.add_argument("--joint", default=None, help="the wheel-leg joint's name (default: the only joint there)")
+    r.add_argument("--slip-topic", default=None, help="std_msgs/msg/Float64 reference slip topic (default: none)")
+    r.add_argument("--bag-time", action="store_true",
+                   help="time the samples by the bag's receive times, not the header stamps")
+    r.add_argument("--max-joint-gap", type=joint_gap_seconds, default=None, metavar="S",
+                   help="longest joint-state step interpolated over [s] (default: 5 median steps)")
+
+
+def bag_topics_from_args(args):
+    """The :class:`~slipest.io.rosbag.BagTopics` of :func:`add_bag_arguments`' options."""
+    from slipest.io.rosbag import BagTopics
+
+    return BagTopics(imu=args.imu_topic, joint_states=args.joint_states_topic, joint=args.joint, slip=args.slip_topic,
+                     bag_time=args.bag_time, max_joint_gap=args.max_joint_gap)
 
 
 def add_parser(sub) -> None:
@@ -103,19 +126,10 @@ def add_parser(sub) -> None:
                    "as the live commands)")
     c.add_argument("--stuck-samples", type=int, default=None, metavar="N",
                    help="a fixed run length in samples instead of --stuck-time (0: never)")
-    r = p.add_argument_group("ROS 2 bags")
-    r.add_argument("--imu-topic", default="/imu", help="sensor_msgs/msg/Imu topic (default /imu)")
-    r.add_argument("--joint-states-topic", default="/joint_states",
-                   help="sensor_msgs/msg/JointState topic (default /joint_states)")
-    r.add_argument("--joint", default=None, help="the wheel-leg joint's name (default: the only joint there)")
-    r.add_argument("--slip-topic", default=None, help="std_msgs/msg/Float64 reference slip topic (default: none)")
-    r.add_argument("--bag-time", action="store_true",
-                   help="time the samples by the bag's receive times, not the header stamps")
-    r.add_argument("--max-joint-gap", type=joint_gap_seconds, default=None, metavar="S",
-                   help="longest joint-state step interpolated over [s] (default: 5 median steps)")
+    add_bag_arguments(p)
     m = p.add_argument_group("many logs")
-    m.add_argument("--jobs", type=int, default=None, metavar="N",
-                   help="worker processes (default: one per core)")
+    m.add_argument("--jobs", type=job_count, default=None, metavar="N",
+                   help="worker processes, >= 1 (default: one per core)")
     m.add_argument("--scheduler", metavar="ADDRESS",
                    help="run on this Dask cluster (e.g. tcp://10.0.0.5:8786; pip install 'slipest[dask]')")
     m.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
@@ -123,11 +137,9 @@ def add_parser(sub) -> None:
 
 
 def options_from_args(args):
-    from slipest.io.rosbag import BagTopics
     from slipest.offline.replay import ReplayOptions
 
-    bag = BagTopics(imu=args.imu_topic, joint_states=args.joint_states_topic, joint=args.joint, slip=args.slip_topic,
-                    bag_time=args.bag_time, max_joint_gap=args.max_joint_gap)
+    bag = bag_topics_from_args(args)
     return ReplayOptions(legs=args.legs, method=args.method, soil=soil_from_args(args) or None, model=args.model,
                          rover=args.rover,
                          use_reference=args.use_reference, truth=args.truth, carry_reference=bool(args.plot),

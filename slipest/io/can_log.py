@@ -6,7 +6,8 @@ suffix: ``.asc``, ``.blf``, ``.csv``, ``.db``, ``.log`` (candump -l),
 ``.mf4`` (with asammdf), ``.trc``, and each of them gzipped, ``.asc.gz``...),
 decodes its frames with the DBC, a chunk at a time
 (:meth:`~slipest.io.can_messages.CanDecoder.decode_many`: unknown IDs, error
-frames and bad frames are counted and skipped) and yields
+frames and bad frames are counted and skipped, and so are SlipReference
+frames flagged invalid or outside [0, 1), as live) and yields
 :class:`~slipest.io.source.SourceBatch` es as
 :class:`~slipest.io.can_source.CanSource` does live, the frame's recorded
 timestamp standing for its arrival time (``intake``).  It declares the same
@@ -18,18 +19,25 @@ estimates the live run gave on the same frames.
 A file python-can cannot read, or a frame it cannot parse, raises
 :class:`~slipest.io.log_csv.LogFormatError` naming the file and the frame's
 1-based index (a bad frame after the frames before it are handed on).
+``check_references`` sees each chunk's references before any is handed on:
+a replay that learns from them refuses one outside [0, 1) there.  A ``.mf4``
+needs asammdf (:class:`~slipest.extras.MissingExtra` naming
+``pip install 'slipest[mf4]'``).
 Memory: one batch at a time (``batch_frames`` frames).
 """
 
 from __future__ import annotations
 
 import os
-from typing import Iterator
+from typing import Callable, Iterator
 
 import can
+import numpy as np
 from can.io.player import MESSAGE_READERS
 
-from slipest.io.can_messages import COUNTER_MODULUS, TIME_MOD_PERIOD, CanDecoder
+from slipest.extras import import_extra
+from slipest.io.can_messages import COUNTER_MODULUS, REORDER_FRAMES, TIME_MOD_PERIOD, CanDecoder
+from slipest.io.can_messages import SlipReferenceMessage
 from slipest.io.can_source import add_record
 from slipest.io.log_csv import LogFormatError
 from slipest.io.source import SourceBatch
@@ -54,24 +62,32 @@ class CanLogFile:
     ``path``: the file (python-can picks the reader by suffix).  Iterate
     :meth:`batches` once.  Wire facts as :class:`~slipest.io.can_source.CanSource`.
     Counters (:meth:`counters`): ``frames`` read, the decoder's (``ok``,
-    ``unknown_id``, ``bad_frame``, ``not_data``, ``counter_gaps``...), and
-    ``references_invalid`` (SlipReference frames flagged invalid).
+    ``unknown_id``, ``bad_frame``, ``not_data``, ``counter_gaps``...),
+    ``references_invalid`` (SlipReference frames flagged invalid) and
+    ``references_out_of_range`` (SlipReference frames with a slip outside [0, 1)), both skipped.
+    ``check_references(slip, t)``: called with the slips [-] and recorded timestamps [s] of each chunk's
+    SlipReference frames not flagged invalid, before any of the chunk is handed on; what it raises stops
+    the reading (a replay that learns from the references refuses one outside [0, 1) this way).
     """
 
     seq_modulus = COUNTER_MODULUS
+    reorder_window = REORDER_FRAMES
     time_unit = 1.0
     time_modulus = TIME_MOD_PERIOD
 
-    def __init__(self, path, *, batch_frames: int = 4096):
+    def __init__(self, path, *, batch_frames: int = 4096, check_references: Callable | None = None):
         self.path = os.fspath(path)
         if not is_can_log_name(self.path):
             raise LogFormatError(f"python-can reads no log with this suffix (it reads {', '.join(CAN_LOG_SUFFIXES)}, "
                                  "also gzipped)", self.path)
         if not os.path.isfile(self.path):
             raise FileNotFoundError(2, "no such file", self.path)
+        if self.path.lower().removesuffix(".gz").endswith(".mf4"):
+            import_extra("asammdf", "mf4", f"reading the .mf4 CAN log {self.path}")
         self.batch_frames = max(1, int(batch_frames))
+        self.check_references = check_references
         self.decoder = CanDecoder()
-        self.c = {"frames": 0, "references_invalid": 0, "bytes_missing": 0}
+        self.c = {"frames": 0, "references_invalid": 0, "references_out_of_range": 0, "bytes_missing": 0}
         self.first_timestamp: float | None = None
 
     def describe(self) -> str:
@@ -123,11 +139,15 @@ class CanLogFile:
                 error = exc
             if not chunk:
                 break
-            for msg, rec in zip(chunk, self.decoder.decode_many(chunk)):
+            recs = self.decoder.decode_many(chunk)
+            if self.check_references is not None:
+                self._check_references(chunk, recs)
+            for msg, rec in zip(chunk, recs):
                 imu: list = []
                 refs: list = []
-                if not add_record(rec, imu, refs):
-                    c["references_invalid"] += 1
+                unusable = add_record(rec, imu, refs)
+                if unusable:
+                    c[unusable] += 1
                 if not (imu or refs):
                     continue
                 ts = float(msg.timestamp)
@@ -142,3 +162,10 @@ class CanLogFile:
             yield out
         if error is not None:
             raise error
+
+    def _check_references(self, chunk, recs) -> None:
+        got = [(rec.slip, msg.timestamp) for msg, rec in zip(chunk, recs)
+               if isinstance(rec, SlipReferenceMessage) and rec.slip == rec.slip]
+        if got:
+            slip, t = np.array(got, dtype=float).T
+            self.check_references(slip, t)

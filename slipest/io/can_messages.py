@@ -61,6 +61,7 @@ import numpy as np
 __all__ = [
     "N_WHEELS",
     "COUNTER_MODULUS",
+    "REORDER_FRAMES",
     "TIME_MOD_PERIOD",
     "QUALITY_OK",
     "QUALITY_INVALID",
@@ -90,6 +91,10 @@ __all__ = [
 N_WHEELS = 6
 #: Rolling counters wrap modulo this value.
 COUNTER_MODULUS = 256
+#: Frames of one wheel up to this many counter steps late are put back in order on receipt (a controller's
+#: transmit mailboxes, a logger's buffers: :mod:`slipest.io.counter_order`); a lost frame delays the frames
+#: after it by as many sample periods.
+REORDER_FRAMES = 4
 _COUNTER_HALF = COUNTER_MODULUS // 2
 #: ``TimeMod`` signals hold the device time modulo this period [s].
 TIME_MOD_PERIOD = 0.65536

@@ -8,7 +8,9 @@ such event is one notice line, rate-limited as
 :meth:`~slipest.io.source.Source._notice` says),
 decodes with :class:`~slipest.io.can_messages.CanDecoder` (unknown IDs and
 bad frames counted and skipped) and queues the samples with the time they
-arrived (host monotonic clock).  :meth:`CanSource.publish` sends one
+arrived (host monotonic clock); a SlipReference flagged invalid or outside
+[0, 1) is never used: counted (``references_invalid``,
+``references_out_of_range``) and skipped.  :meth:`CanSource.publish` sends one
 SlipEstimate message per leg cycle (ID 0x110 + wheel): an estimated cycle
 with Quality 0, a flagged one (not estimated) with Quality 15 (INVALID).
 :meth:`CanSource.add_listener` hands every frame received, as python-can
@@ -30,6 +32,7 @@ import time
 from slipest.io.bus_args import BusConfig, ReconnectingBus
 from slipest.io.can_messages import (
     COUNTER_MODULUS,
+    REORDER_FRAMES,
     QUALITY_INVALID,
     QUALITY_MISFIT,
     QUALITY_OK,
@@ -41,6 +44,7 @@ from slipest.io.can_messages import (
     SlipReferenceMessage,
     encode_slip_estimate,
 )
+from slipest.io.log_csv import slip_out_of_range
 from slipest.io.source import Source, SourceBatch, one_line_logs
 
 __all__ = ["CanSource", "add_record", "estimate_message", "SOCKETCAND_LOGGER"]
@@ -64,20 +68,23 @@ def estimate_message(wheel: int, estimate):
     return encode_slip_estimate(wheel, int(getattr(estimate, "cycle", 0)), *values, quality=code)
 
 
-def add_record(rec, imu: list, refs: list) -> bool:
+def add_record(rec, imu: list, refs: list) -> str | None:
     """File one decoded frame where a :class:`~slipest.io.source.SourceBatch` takes it: an
-    :class:`ImuMessage` as ``(wheel, counter, time_mod, az, theta)`` in ``imu``, a valid
+    :class:`ImuMessage` as ``(wheel, counter, time_mod, az, theta)`` in ``imu``, a usable
     :class:`SlipReferenceMessage` as ``(wheel, counter, time_mod, slip, len(imu))`` in ``refs`` (its
-    place among the IMU frames); anything else
-    (None, estimates) is left out.  False for a reference flagged invalid (NaN slip), for the caller
-    to count."""
+    place among the IMU frames); anything else (None, estimates) is left out.  A reference that cannot
+    be used is left out too, and the counter the caller adds one to is returned: ``"references_invalid"``
+    (flagged invalid: NaN slip) or ``"references_out_of_range"`` (a slip outside [0, 1), e.g. a negative
+    one, which the signed DBC field carries: :func:`~slipest.io.log_csv.slip_out_of_range`); None otherwise."""
     if isinstance(rec, ImuMessage):
         imu.append((rec.wheel, rec.counter, rec.time_mod, rec.az, rec.theta))
     elif isinstance(rec, SlipReferenceMessage):
         if rec.slip != rec.slip:
-            return False
+            return "references_invalid"
+        if slip_out_of_range(rec.slip):
+            return "references_out_of_range"
         refs.append((rec.wheel, rec.counter, rec.time_mod, rec.slip, len(imu)))
-    return True
+    return None
 
 
 class CanSource(Source):
@@ -88,6 +95,7 @@ class CanSource(Source):
     """
 
     seq_modulus = COUNTER_MODULUS
+    reorder_window = REORDER_FRAMES
     time_unit = 1.0
     time_modulus = TIME_MOD_PERIOD
 
@@ -98,7 +106,7 @@ class CanSource(Source):
         self.max_batch = max_batch
         self.bus = ReconnectingBus(config, on_event=lambda text: self._notice(text, kind="bus"))
         one_line_logs(SOCKETCAND_LOGGER)
-        self.c = {"published": 0, "publish_failed": 0, "references_invalid": 0}
+        self.c = {"published": 0, "publish_failed": 0, "references_invalid": 0, "references_out_of_range": 0}
         self._lock = threading.Lock()
         self._listeners: list = []
 
@@ -151,8 +159,9 @@ class CanSource(Source):
         imu = []
         refs = []
         for rec in recs:
-            if not add_record(rec, imu, refs):
-                self.c["references_invalid"] += 1
+            unusable = add_record(rec, imu, refs)
+            if unusable:
+                self.c[unusable] += 1
         if imu or refs:
             self._put(SourceBatch(intake, imu, refs))
 

@@ -79,6 +79,7 @@ __all__ = [
     "LogReader",
     "LogWriter",
     "read_log",
+    "slip_out_of_range",
 ]
 
 #: Columns every log must have: time [s], vertical specific force [m/s^2],
@@ -94,6 +95,14 @@ EXTRA_DECIMALS = 7
 _MAX_LINE_BYTES = 1 << 20  # longest line accepted, so memory stays bounded on garbage input
 _KEY_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_.\-]*$")
 _NAME_BAD_CHARS = set(",#\r\n\t ")
+
+
+def slip_out_of_range(slip):
+    """Where a reference slip [-] (a number or an array) is outside ``[0, 1)``, the fraction the model's slip is:
+    in percent, negative (a sign convention), 1 and above.  NaN (no reference) is not.  The one statement of the
+    range: a log refuses such a value (:func:`slipest.offline.reference_slip.check_reference_slip`), a live
+    stream skips it (:func:`slipest.io.can_source.add_record`, :class:`slipest.io.serial_source.SerialSource`)."""
+    return (slip < 0.0) | (slip >= 1.0)
 
 
 class LogFormatError(ValueError):

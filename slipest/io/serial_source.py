@@ -19,8 +19,11 @@ number, so reopening it would read another device's frames as this one's
 (taken for a restart of it); the source ends instead, saying why.  A device
 that re-creates its pseudo-terminal keeps a stable link to it
 (``firmware-sim --link``, socat's ``link=``), which is reopened.
+A SLIP_REFERENCE frame whose slip lies outside [0, 1) (percent, a negative
+sign convention: :func:`~slipest.io.log_csv.slip_out_of_range`) is never
+used: counted (``references_out_of_range``) and skipped, as CAN's are.
 Everything is counted (:meth:`SerialSource.counters`): the decoder's counters plus ``opens``,
-``disconnects``, ``reopen_attempts``, ``read_errors`` and
+``disconnects``, ``reopen_attempts``, ``read_errors``, ``references_out_of_range`` and
 ``notices_suppressed``.  A port that keeps going away and coming back
 (a device that opens and closes, a path that points at a dead pty) says so
 three times, then once per ten seconds with the number left out
@@ -35,6 +38,7 @@ import time
 
 import serial
 
+from slipest.io.log_csv import slip_out_of_range
 from slipest.io.serial_frames import FRAME_IMU_SAMPLE, SEQ_MODULUS, FrameDecoder
 from slipest.io.source import Source, SourceBatch
 
@@ -75,7 +79,7 @@ class SerialSource(Source):
         self.decoder = decoder or FrameDecoder()
         self._ser = None
         self._pty_gone = False  # the pseudo-terminal node we read went away: never reopened
-        self.c = {"opens": 0, "disconnects": 0, "reopen_attempts": 0, "read_errors": 0}
+        self.c = {"opens": 0, "disconnects": 0, "reopen_attempts": 0, "read_errors": 0, "references_out_of_range": 0}
 
     def describe(self) -> str:
         return f"serial:{self.port}"
@@ -150,6 +154,8 @@ class SerialSource(Source):
         for f in frames:
             if f.kind == FRAME_IMU_SAMPLE:
                 imu.append((f.wheel, f.seq, f.t_us, f.az, f.theta))
+            elif slip_out_of_range(f.slip):
+                self.c["references_out_of_range"] += 1
             else:
                 refs.append((f.wheel, f.seq, f.t_us, f.slip, len(imu)))
         self._put(SourceBatch(intake, imu, refs))

@@ -41,6 +41,7 @@ import os
 import threading
 import time
 
+from slipest.extras import MissingExtra, import_extra
 from slipest.io.device_stream import WheelSamples
 from slipest.io.log_csv import LogWriter
 
@@ -166,7 +167,7 @@ class FrameRecorder:
     (``can.Logger``; ``.csv`` is python-can's CSV here).  ``ValueError``
     naming the path for a suffix python-can cannot write or ``slipest
     replay`` cannot read back, or a writer that is missing its package
-    (``.mf4`` without asammdf); ``FileExistsError`` when it exists (unless
+    (``.mf4`` without asammdf: ``pip install 'slipest[mf4]'``); ``FileExistsError`` when it exists (unless
     ``overwrite``).
 
     A python-can listener: :meth:`on_message_received` (also ``self(msg)``)
@@ -195,6 +196,11 @@ class FrameRecorder:
                              f"(suffixes: {', '.join(known)}, the text ones also gzipped)")
         if not overwrite and os.path.exists(self.path):
             raise FileExistsError(f"{self.path} exists (a recording is never overwritten by mistake)")
+        if suffix == ".mf4":  # python-can's own message names its extra, not ours
+            try:
+                import_extra("asammdf", "mf4", "recording a .mf4 CAN log")
+            except MissingExtra as exc:
+                raise ValueError(f"{self.path}: {exc}") from None
         kwargs = {"max_container_size": BLF_CONTAINER_BYTES} if base.endswith(".blf") else {}
         try:
             self.writer = can.Logger(self.path, **kwargs)

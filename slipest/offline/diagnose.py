@@ -1,7 +1,9 @@
 """The sim-to-real diagnosis of log files: read them, cut their cycles, diagnose; or one log at a time.
 
 :func:`diagnose_logs` reads slipest log CSVs (with the ``slip`` column: the
-slip imposed and logged), takes the known hardware from their metadata
+slip imposed and logged) and ROS 2 bags (with a reference slip topic: read
+as ``slipest replay`` reads them, :class:`~slipest.io.rosbag.RosBag`; they
+carry no metadata), takes the known hardware from the CSVs' metadata
 (``nL``, ``MH``, ``mF``, ``lS``; :class:`DiagnoseOptions` overrides them;
 logs that disagree are refused), cuts and bins their cycles and runs
 :func:`slipest.diagnosis.run.diagnose` on all of them together.
@@ -11,11 +13,11 @@ Beside the fits, each log's leg swaps are read for the IMU's timing against
 the encoder (:func:`slipest.swap_timing.swap_summary`), model-free.
 
 Errors name the file: :class:`~slipest.io.log_csv.LogFormatError` (a
-malformed log, or a reference slip outside ``[0, 1)``, e.g. in percent:
+malformed log or bag, or a reference slip outside ``[0, 1)``, e.g. in percent:
 :func:`slipest.offline.reference_slip.check_reference_slip`, checked for
 every log before any cycle is cut), ``OSError`` (cannot read it), ``ValueError`` (no slip
-column, logs that disagree on the hardware, an unknown effect, too few
-cycles).
+column or topic, logs that disagree on the hardware, an unknown effect, too few
+cycles), :class:`~slipest.extras.MissingExtra` (a bag without ``rosbags``).
 """
 
 from __future__ import annotations
@@ -27,20 +29,23 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slipest.io.log_csv import LogFormatError, read_log
+from slipest.io.log_csv import LogData, LogFormatError, LogMetadata, read_log
+from slipest.io.rosbag import BagTopics
+from slipest.offline.logs import detect_kind
 from slipest.offline.reference_slip import check_reference_slip
 
 __all__ = ["DIAGNOSE_COLUMNS", "DiagnoseOptions", "diagnose_logs", "diagnose_rows", "geometry_of"]
 
-#: The many-logs table of the diagnosis, one row per log: cycles (cut, fitted, held out), the mean
-#: logged slip [-], the nominal model's fitted soil (kS [N/m], phiS, dphi [rad], kappa [-]), the held-out
-#: gap before and after the best effect [mg], the verdict (an effect, ``none``, ``unexplained``, or
-#: ``error``), the IMU's timing against the encoder at the leg swaps (median offset [ms], steps found,
-#: settling ratio [-], NaN when that timing is off: :class:`slipest.swap_timing.SwapSummary`), the error, the seconds
-#: it took.
-DIAGNOSE_COLUMNS = ("log", "cycles", "fitted", "held_out", "mean_slip", "kS", "phiS", "dphi", "kappa",
-                    "gap_nominal_mg", "gap_after_mg", "verdict", "swap_offset_ms", "swap_steps", "settling", "error",
-                    "seconds")
+#: The many-logs table of the diagnosis, one row per log: cycles (cut, fitted, held out), what was left out of
+#: the log (the leg cycles replay's segmenter flags, and the glitch samples left out of the cycles kept: the
+#: report's ``data:`` line), the mean logged slip [-], the nominal model's fitted soil (kS [N/m], phiS, dphi
+#: [rad], kappa [-]), the held-out gap before and after the best effect [mg], the verdict (an effect, ``none``,
+#: ``unexplained``, or ``error``), the IMU's timing against the encoder at the leg swaps (median offset [ms],
+#: steps found, settling ratio [-], NaN when that timing is off: :class:`slipest.swap_timing.SwapSummary`), the
+#: error, the seconds it took.
+DIAGNOSE_COLUMNS = ("log", "cycles", "fitted", "held_out", "cycles_left_out", "samples_repaired", "mean_slip", "kS",
+                    "phiS", "dphi", "kappa", "gap_nominal_mg", "gap_after_mg", "verdict", "swap_offset_ms",
+                    "swap_steps", "settling", "error", "seconds")
 
 
 @dataclass(frozen=True)
@@ -48,7 +53,8 @@ class DiagnoseOptions:
     """``effects``: catalog effects to try (None: all).  ``rank_all``: fit every effect even when the
     nominal model explains the data.  ``quick``: half the optimiser budget.  ``seed``: the optimiser's.
     ``legs``, ``MH`` [kg], ``mF`` [kg], ``lS`` [m]: the hardware (None: the logs' metadata, else the
-    defaults of :class:`~slipest.diagnosis.fit.Geometry`)."""
+    defaults of :class:`~slipest.diagnosis.fit.Geometry`).  ``bag``: where a ROS 2 bag's samples and
+    reference slip are (as replay's)."""
 
     effects: tuple | None = None
     rank_all: bool = False
@@ -58,6 +64,7 @@ class DiagnoseOptions:
     MH: float | None = None
     mF: float | None = None
     lS: float | None = None
+    bag: BagTopics = BagTopics()
 
     def checked_effects(self):
         """The effects as a list (None: all); ValueError naming unknown ones."""
@@ -90,11 +97,22 @@ def geometry_of(options: DiagnoseOptions, metas):
                     lS=pick("lS", "lS", float, default.lS), nL=pick("legs", "nL", int, default.nL), g=default.g)
 
 
-def _read(path):
+def _read(path, bag: BagTopics = BagTopics()) -> LogData:
+    """A log's samples whole: a slipest CSV (:func:`~slipest.io.log_csv.read_log`), or a ROS 2 bag's (its
+    chunks as replay streams them, without metadata: ``slip`` None without ``bag.slip``)."""
     try:
-        return read_log(path)
+        if detect_kind(path) != "ros2":
+            return read_log(path)
+        from slipest.io.rosbag import RosBag
+
+        with RosBag(path, bag) as reader:
+            chunks = list(reader.iter_chunks())
+            has_slip = reader.has_slip
     except OSError as exc:
         raise OSError(exc.errno, f"cannot read {path}: {exc.strerror or exc}") from None
+    cols = ("t", "az", "theta") + (("slip",) if has_slip else ())
+    data = {c: np.concatenate([getattr(ch, c) for ch in chunks]) if chunks else np.zeros(0) for c in cols}
+    return LogData(LogMetadata(source=path), cols, data["t"], data["az"], data["theta"], data.get("slip"), {})
 
 
 def _check_units(path, az) -> None:
@@ -122,12 +140,13 @@ def diagnose_logs(paths, options: DiagnoseOptions = DiagnoseOptions(), progress=
 
     effects = options.checked_effects()
     paths = [str(p) for p in paths]
-    logs = [_read(p) for p in paths]
+    logs = [_read(p, options.bag) for p in paths]
     geometry = geometry_of(options, [log.metadata for log in logs])
     grid = Grid(geometry.nL)
     for path, log in zip(paths, logs):  # every log checked before any work
         if log.slip is None:
-            raise LogFormatError("no 'slip' column (the diagnosis needs the imposed slip)", path)
+            what = "no reference slip topic (--slip-topic)" if detect_kind(path) == "ros2" else "no 'slip' column"
+            raise LogFormatError(f"{what} (the diagnosis needs the imposed slip)", path)
         check_reference_slip(log.slip, log.t, path)  # a slip in percent or negative: refused, not fitted
     sets = []
     for k, (path, log) in enumerate(zip(paths, logs)):
@@ -159,6 +178,7 @@ def diagnose_rows(log, options: DiagnoseOptions = DiagnoseOptions()) -> list[dic
         return [row]
     soil = d.nominal.soil()
     row.update(cycles=len(d.cycles), fitted=len(d.split.train), held_out=len(d.split.test),
+               cycles_left_out=sum(d.cycles.left_out.values()), samples_repaired=d.cycles.repaired,
                mean_slip=float(np.mean(d.cycles.slip)) if len(d.cycles) else math.nan,
                kS=soil["kS"], phiS=soil["phiS"], dphi=soil["dphi"], kappa=soil["kappa"],
                gap_nominal_mg=d.gap_nominal * 1000, gap_after_mg=d.gap_after * 1000, verdict=d.verdict,

@@ -3,29 +3,32 @@
 Testbed and visual-odometry logs carry the slip they measured. Written in
 percent, negative (a sign convention) or 1 and above, it would make a
 calibration, a diagnosis or a replay that learns from it (``--use-reference``)
-fit the wrong numbers without a word; those commands refuse it, naming the file.
+fit the wrong numbers without a word; those commands refuse it, naming the file
+(a CAN log's SlipReference frames too: their signed field carries a negative one).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from slipest.io.log_csv import LogFormatError
+from slipest.io.log_csv import LogFormatError, slip_out_of_range
 
 __all__ = ["check_reference_slip"]
 
 
-def check_reference_slip(slip, t, path: str) -> None:
+def check_reference_slip(slip, t, path: str, *, what: str = "sample") -> None:
     """:class:`~slipest.io.log_csv.LogFormatError` naming ``path`` unless every finite value of ``slip``
-    [-] lies in ``[0, 1)``; ``t`` [s]: the samples' times, to say where the first bad one is. NaN (no
-    reference) is allowed. The message suggests percent when the column spans more than 1.5 and up to 100."""
+    [-] lies in ``[0, 1)`` (:func:`~slipest.io.log_csv.slip_out_of_range`); ``t`` [s]: the values' times, to
+    say where the first bad one is; ``what``: what a value is, for the message (a CSV's or a bag's
+    ``"sample"``, a CAN log's ``"SlipReference frame"``). NaN (no reference) is allowed. The message suggests
+    percent when the values span more than 1.5 and up to 100."""
     slip = np.asarray(slip, dtype=float)
     finite = np.isfinite(slip)
-    bad = finite & ((slip < 0.0) | (slip >= 1.0))
+    bad = finite & slip_out_of_range(slip)
     if not bad.any():
         return
     i = int(np.argmax(bad))
     lo, hi = float(slip[finite].min()), float(slip[finite].max())
     hint = " (in percent? slipest wants a fraction, 0.25 for 25 %)" if lo >= 0.0 and 1.5 < hi <= 100.0 else ""
     raise LogFormatError(f"slip {slip[i]:g} at t = {float(np.asarray(t, dtype=float)[i]):.3f} s is outside [0, 1)"
-                         f"{hint}; {int(bad.sum())} sample(s) so, the column spans {lo:g} to {hi:g}", path)
+                         f"{hint}; {int(bad.sum())} {what}(s) so, the values span {lo:g} to {hi:g}", path)

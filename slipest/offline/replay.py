@@ -18,9 +18,11 @@ The reference slip (the CSV's ``slip`` column, a bag's slip topic, the CAN
 SlipReference messages) reaches the estimates' ``slip_ref`` only when
 ``carry_reference`` (or ``truth`` / ``use_reference``) is set, as in the
 live commands, and the estimator learns from it only with
-``use_reference``.  With ``use_reference`` or ``truth`` a CSV's or a bag's
-reference outside [0, 1) (slip in percent, a negative sign convention) is
-refused, naming the log, at the chunk that brings it.
+``use_reference``.  With ``use_reference`` or ``truth`` a reference outside
+[0, 1) (slip in percent, a negative sign convention) in a CSV, a bag or a
+CAN log is refused, naming the log and the time, at the chunk that brings it
+(:func:`~slipest.offline.reference_slip.check_reference_slip`); without them
+a CAN log's are counted and skipped, as ``slipest can`` skips them.
 
 :class:`ReplayResult` holds per-wheel tallies and counters;
 :meth:`ReplayResult.summary_lines` is the one place the replay's summary is
@@ -249,7 +251,9 @@ class ReplayResult:
             s = self.source
             lines.append(f"replay: {s['frames']} CAN frames read from {self.log}: {s['ok']} ours, "
                          f"{s['unknown_id']} other IDs, {s['bad_frame']} bad, {s['not_data']} error/remote frames"
-                         + (f", {s['references_invalid']} invalid references" if s["references_invalid"] else ""))
+                         + (f", {s['references_invalid']} invalid references" if s["references_invalid"] else "")
+                         + (f", {s['references_out_of_range']} references outside [0, 1) skipped"
+                            if s.get("references_out_of_range") else ""))
             if s.get("bytes_missing"):
                 lines.append(f"replay: {self.log} is cut short: its header says {s['bytes_missing']} bytes more than "
                              "the file has (a copy or a recording that stopped early); the frames in them are lost")
@@ -259,6 +263,7 @@ class ReplayResult:
                 sc = w.stream_counters
                 lines.append(f"replay: wheel {wheel}: {sc.get('samples_out', 0)} samples ({sc.get('frames_lost', 0)} "
                              f"lost frames filled, {sc.get('out_of_order', 0)} out of order, "
+                             + (f"{sc['reordered']} put back in order, " if sc.get("reordered") else "")
                              + (f"{sc['frames_invalid']} invalid (no angle or time), " if sc.get("frames_invalid")
                                 else "")
                              + f"{sc.get('restarts', 0)} restarts, {sc.get('stuck_samples', 0)} stuck); "
@@ -326,7 +331,8 @@ class Replay:
     :class:`~slipest.io.log_csv.LogFormatError` (not a log of its kind, a
     reference needed but absent), ``ValueError`` (options the estimator
     refuses, an inverse-model file that cannot be used: the message names
-    it), :class:`~slipest.extras.MissingExtra` (a bag without ``rosbags``).
+    it), :class:`~slipest.extras.MissingExtra` (a bag without ``rosbags``, a
+    ``.mf4`` without ``asammdf``).
     """
 
     def __init__(self, log, options: ReplayOptions = ReplayOptions(), *, name: str | None = None):
@@ -356,7 +362,8 @@ class Replay:
             else:
                 from slipest.io.can_log import CanLogFile
 
-                self._reader = CanLogFile(log)
+                check = self._check_references if o.truth or o.use_reference else None  # as _sample_chunks checks
+                self._reader = CanLogFile(log, check_references=check)
                 self.legs = o.legs if o.legs is not None else 4
                 has_ref = True  # SlipReference frames may come; which wheels have them shows in the summary
             if (o.truth or o.use_reference) and not has_ref:
@@ -404,6 +411,12 @@ class Replay:
         tally.hints = est.hints
         source = self._reader.counters() if self.kind == "ros2" else {}
         return {None: tally}, source
+
+    def _check_references(self, slip, t) -> None:
+        """A CAN log's references as a CSV's slip column is checked (``LogFormatError`` naming the log)."""
+        from slipest.offline.reference_slip import check_reference_slip
+
+        check_reference_slip(slip, t, self.source_name, what="SlipReference frame")
 
     def _sample_chunks(self):
         """The log's chunks as the estimator takes them, ``(t, az, theta, slip or None)``.  With
