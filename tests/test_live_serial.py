@@ -91,11 +91,12 @@ def test_a_stuck_sensor_is_never_handed_on_and_normal_data_is_not_delayed():
 
 
 #: What can happen to a device's stream (see frames_with_events).
-EVENTS = ("run", "lose", "dup", "swap", "restart", "reboot", "stuck", "repeat", "burst", "stall", "jump", "late",
-          "early")
+EVENTS = ("run", "lose", "dup", "swap", "delay", "restart", "reboot", "stuck", "repeat", "burst", "stall", "jump",
+          "late", "early")
 #: How a link carries the frames: WheelStream options, and whether arrival times are given.
 LINKS = {"serial": ({}, True), "serial, no arrival times": ({}, False),
          "can": ({"seq_modulus": 256, "time_modulus": 0.65536}, True),
+         "can, put back in order": ({"seq_modulus": 256, "time_modulus": 0.65536, "reorder_window": 4}, True),
          "can, no counter": ({"seq_modulus": 0, "time_modulus": 0.65536}, True),
          "serial, stuck at 4 samples": ({"stuck_samples": 4}, True)}
 
@@ -104,7 +105,8 @@ def frames_with_events(events, wrapped: bool, seed: int):
     """A device's frames with events in it: (seq, t, az, theta, intake) lists in arrival order.
 
     Starts with 200 plain frames at 1 kHz, then each (event, k): ``run`` k plain frames; ``lose`` k
-    frames never sent; ``dup`` the last frame again; ``swap`` two frames in swapped order; ``restart``
+    frames never sent; ``dup`` the last frame again; ``swap`` two frames in swapped order; ``delay`` a frame
+    sent after the k % 7 + 1 frames that follow it (within a window of 4 frames or beyond it); ``restart``
     the counter back to k; ``reboot`` the counter back to 0 and the device clock to k ms; ``stuck`` k
     frames with the same az; ``repeat`` k % 14 + 1 frames with the same az (around the stuck length: a
     short repeat is held and released, a long one is stuck); ``burst`` k frames arriving together (one
@@ -141,6 +143,9 @@ def frames_with_events(events, wrapped: bool, seed: int):
         elif event == "swap":
             a, b = make(), make()
             out += [b, a]
+        elif event == "delay":
+            late = make()
+            out += [make() for _ in range(k % 7 + 1)] + [late]
         elif event == "restart":
             dev["seq"] = k - 1
             out.append(make())

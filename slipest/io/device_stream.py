@@ -29,7 +29,11 @@ from.  Each frame goes through these rules, in arrival order:
   (by less than half its range) as many periods as its wrapped time did
   (within 2) is the reordering (a frame sent late by a bus's arbitration
   or a logger's buffers), dropped too: the frame it came after has already
-  counted it lost.
+  counted it lost.  With ``reorder_window`` (CAN's sources set it), frames
+  a few counter steps late are first put back in counter order
+  (:class:`~slipest.io.counter_order.CounterOrder`, ``reordered``): only
+  a frame later than the window is dropped so, and a lost frame delays the
+  window's frames after it.
 * **Lost frames.**  A forward jump of the counter by ``n + 1`` means ``n``
   frames were lost (dropped, corrupted, or sent while the link was down),
   when the time step says so too.  Once the sample period is learnt, the
@@ -118,6 +122,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from slipest.io.counter_order import CounterOrder
 from slipest.stuck import STUCK_MIN_SAMPLES, STUCK_TIME, stuck_run_length
 
 __all__ = ["STUCK_MIN_SAMPLES", "STUCK_TIME", "SEQ_MODULUS", "WheelSamples", "WheelStream", "stuck_run_length"]
@@ -218,13 +223,15 @@ class WheelStream:
     samples inserted for one loss.  ``stuck_time`` [s]: duration of a run of
     identical ``az`` taken as a stuck sensor (0: never; see the module
     docstring); ``stuck_samples``: a fixed run length in samples instead (0:
-    never).  :attr:`events` collects, for people, the restarts and late
+    never).  ``reorder_window``: frames up to this many counter steps late
+    are put back in counter order first (0: none; needs a counter; see the
+    module docstring).  :attr:`events` collects, for people, the restarts and late
     starts seen (the caller takes them).
     """
 
     def __init__(self, wheel: int = 0, *, seq_modulus: int = SEQ_MODULUS, time_modulus: float | None = None,
                  time_scale: float = 1.0, max_fill: int = 10000, stuck_samples: int | None = None,
-                 stuck_time: float = STUCK_TIME):
+                 stuck_time: float = STUCK_TIME, reorder_window: int = 0):
         self.wheel = wheel
         self.time_scale = time_scale
         self.seq_modulus = seq_modulus
@@ -250,6 +257,7 @@ class WheelStream:
         self._prev_az = _NAN
         self._fast_frames = 0  # frames taken by the vectorised run (tests check it is exercised)
         self._suspect: tuple | None = None  # a frame whose time disagrees with its counter's step of one, held
+        self._order = CounterOrder(seq_modulus, reorder_window) if reorder_window and seq_modulus else None
         self.c = {
             "samples_in": 0,
             "samples_out": 0,
@@ -293,6 +301,11 @@ class WheelStream:
         seqs = _column(seq, n) if self.seq_modulus else [None] * n
         ts, azs, ths = _column(t, n), _column(az, n), _column(theta, n)
         self.c["samples_in"] += n
+        if self._order is not None:
+            seqs, (ts, azs, ths, intakes) = self._order.order(seqs, (ts, azs, ths, intakes))
+            n = len(ts)
+            if n == 0:
+                return WheelSamples.empty()
         frame = self._frame
         if n < _RUN_MIN:  # a live source's usual call: one or two frames
             out = _Rows()
@@ -324,9 +337,14 @@ class WheelStream:
         return s
 
     def flush(self) -> WheelSamples:
-        """Release held samples (end of stream): unchanged, as their run was too short; a frame held as a
-        suspected time glitch is taken as the rules take it without the frame after it (a restart)."""
+        """Release held samples (end of stream): frames waiting for a late one, in counter order; a repeating
+        run's samples unchanged, as their run was too short; a frame held as a suspected time glitch is taken
+        as the rules take it without the frame after it (a restart)."""
         out = _Rows()
+        if self._order is not None:
+            seqs, fields = self._order.flush()
+            for sq, tr, a, th, ti in zip(seqs, *fields):
+                self._frame(sq, float(tr), float(a), float(th), float(ti), out)
         if self._suspect is not None:
             suspect, self._suspect = self._suspect, None
             self._frame(*suspect, out, judged=True)
@@ -335,8 +353,14 @@ class WheelStream:
         return out.samples()
 
     def counters(self) -> dict:
+        """The counters of the module docstring's rules; ``held``: frames held back now (a repeating run's,
+        and those waiting for a late frame); ``reordered``: frames put back in counter order (a late frame's
+        duplicate held counts as ``out_of_order``)."""
         c = dict(self.c)
-        c["held"] = len(self._held)
+        c["held"] = len(self._held) + (len(self._order) if self._order is not None else 0)
+        c["reordered"] = self._order.reordered if self._order is not None else 0
+        if self._order is not None:
+            c["out_of_order"] += self._order.duplicates
         return c
 
     # -- the rules, one frame at a time ---------------------------------------------

@@ -12,7 +12,9 @@ into a continuous stream (:class:`~slipest.io.device_stream.WheelStream`):
 * ``time_unit`` [s]: one unit of a batch's time field (serial: 1e-6, the
   frames carry microseconds; CAN: 1.0, seconds);
 * ``time_modulus`` [s]: device timestamps wrap with this period (CAN's
-  ``TimeMod``: 0.65536 s); None: they are absolute.
+  ``TimeMod``: 0.65536 s); None: they are absolute;
+* ``reorder_window``: frames of a wheel up to this many counter steps late
+  are put back in counter order (CAN: 4; 0: the link keeps the order).
 
 A subclass implements :meth:`Source.describe`, :meth:`Source.counters`,
 ``_open(wait)`` (open the link, retrying for up to ``wait`` seconds; an
@@ -123,6 +125,8 @@ class Source(abc.ABC):
     time_unit: float = 1.0
     #: [s] device timestamps wrap with this period; None: absolute.
     time_modulus: float | None = None
+    #: Frames of a wheel up to this many counter steps late are put back in counter order (0: none).
+    reorder_window: int = 0
 
     def __init__(self) -> None:
         self._batches: queue.Queue = queue.Queue()

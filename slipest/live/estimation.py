@@ -59,7 +59,7 @@ class LiveEstimation:
     """Frames of any wheel in, estimates out (see the module docstring).
 
     ``source``: the :class:`~slipest.io.source.Source` the frames come from
-    (its ``seq_modulus``, ``time_modulus``, ``time_unit`` and
+    (its ``seq_modulus``, ``time_modulus``, ``time_unit``, ``reorder_window`` and
     ``describe()`` are used; it need not be started yet).  The estimator
     options (``n_legs``, ``method``, ``soil``, ``use_reference``, ``model``)
     are those of :class:`~slipest.online.SlipEstimator`, or
@@ -93,6 +93,7 @@ class LiveEstimation:
         self.seq_modulus = int(source.seq_modulus)
         self.time_modulus = source.time_modulus
         self.time_unit = float(source.time_unit)
+        self.reorder_window = int(source.reorder_window)
         self.n_legs = n_legs
         self.method = method
         self.soil = soil or None
@@ -181,7 +182,7 @@ class LiveEstimation:
             return None
         stream = WheelStream(wheel, seq_modulus=self.seq_modulus, time_modulus=self.time_modulus,
                              time_scale=self.sim_speed or 1.0, stuck_samples=self.stuck_samples,
-                             stuck_time=self.stuck_time)
+                             stuck_time=self.stuck_time, reorder_window=self.reorder_window)
         estimator, self._spare = (self._spare, None) if self._spare is not None else (self._factory(wheel), None)
         if self.recorder is not None:
             self.recorder.open_wheel(wheel)
