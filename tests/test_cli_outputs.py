@@ -70,3 +70,36 @@ def test_a_command_that_makes_its_directories_may_name_a_new_one(tmp_path):
     new = tmp_path / "rovers" / "r.json"
     assert output_problem(new, makes_dirs=True) is None
     assert "no directory" in output_problem(new)
+
+
+def test_calibrate_replaces_a_rover_file_but_no_other_file_unless_told(log, tmp_path, capsys):
+    """`calibrate -o drive_copy.csv` (an existing log that is not an input) had replaced it with a rover file;
+    every refusal comes before the calibration's minutes."""
+    from slipest.rover.file import KIND
+
+    other = tmp_path / "other_drive.csv"
+    other.write_bytes(log.read_bytes())
+    t0 = time.monotonic()
+    _refused(["calibrate", str(log), "--no-progress", "-o", str(other)], capsys, "not a rover file", "--overwrite")
+    assert other.read_bytes() == log.read_bytes()
+    # a rover file is what a recalibration replaces: that one is let through to the calibration (which then
+    # refuses this one short log: the refusal is not about -o)
+    rover = tmp_path / "rover.json"
+    rover.write_text('{"kind": "%s"}' % KIND)
+    with pytest.raises(SystemExit) as exc:
+        main(["calibrate", str(log), "--no-progress", "--no-diagnosis", "-o", str(rover)])
+    assert "rover file" not in str(exc.value.code) and "--overwrite" not in str(exc.value.code)
+    assert time.monotonic() - t0 < 30
+
+
+@pytest.mark.parametrize("where", ["/proc/slipest-rover.json", ""])
+def test_an_output_that_cannot_be_written_is_refused_before_the_work(where, log, capsys):
+    """`calibrate -o /proc/x.json` failed after the whole calibration; `-o ''` with 'Is a directory'."""
+    import os
+
+    if where.startswith("/proc") and not os.path.isdir("/proc"):
+        pytest.skip("no /proc on this system")
+    t0 = time.monotonic()
+    _refused(["calibrate", str(log), "--no-progress", "-o", where], capsys, "cannot write" if where else "name a file")
+    _refused(["diagnose", str(log), "--no-progress", "--json", where], capsys, "cannot write" if where else "name a file")
+    assert time.monotonic() - t0 < 30

@@ -18,6 +18,10 @@ file (JSON) that the estimator takes with --rover:
     slipest serial /dev/ttyUSB0 --rover rover.json
     slipest replay drive.csv --rover rover.json --method eq515 --kS 900 --dphi 0.2
 
+``-o`` is checked before any work: a file read, a directory, a place this
+user cannot write are refused; an existing rover file is replaced (a
+recalibration), any other existing file only with ``--overwrite``.
+
 Progress goes to stderr, the report to stdout: the effects named, the
 estimates of the testbed logs before and after (blind: soil unknown,
 reference ignored), the held-out feature misfit, what is left unexplained.
@@ -28,6 +32,7 @@ simulated batch are most of it; --thorough doubles the diagnosis budget). docs/c
 from __future__ import annotations
 
 import argparse
+import os
 import shlex
 import sys
 
@@ -40,7 +45,9 @@ def add_parser(sub) -> None:
                     "(writes the rover file for --rover)", __doc__)
     p.add_argument("logs", nargs="+", metavar="LOG.csv", help="testbed logs (slipest CSV with a 'slip' column), "
                    "each on its own soil")
-    p.add_argument("-o", "--output", required=True, metavar="ROVER.json", help="the rover file to write")
+    p.add_argument("-o", "--output", required=True, metavar="ROVER.json",
+                   help="the rover file to write (an existing one is replaced; any other file only with --overwrite)")
+    p.add_argument("--overwrite", action="store_true", help="replace -o whatever it holds")
     p.add_argument("--legs", type=leg_count, default=None, help="legs of the wheel-leg (default: the logs' nL, else 4)")
     p.add_argument("--MH", type=float, default=None, help="hub mass [kg] (default: the logs' metadata, else 1.0)")
     p.add_argument("--mF", type=float, default=None, help="foot mass [kg] (default: the logs' metadata, else 0.2)")
@@ -60,6 +67,20 @@ def add_parser(sub) -> None:
 
 def _fail(msg: str):
     raise SystemExit(f"slipest calibrate: {msg}")
+
+
+def _is_rover_file(path) -> bool:
+    """Whether ``path`` holds a rover file (JSON of the rover file's ``kind``), which a calibration may replace."""
+    import json
+
+    from slipest.rover.file import KIND
+
+    try:
+        with open(path, "rb") as fh:
+            doc = json.load(fh)
+    except (OSError, ValueError):  # unreadable, not JSON, not UTF-8: not a rover file
+        return False
+    return isinstance(doc, dict) and doc.get("kind") == KIND
 
 
 def _progress_bar(args):
@@ -98,6 +119,8 @@ def run(args: argparse.Namespace) -> int:
     problem = output_problem(args.output, args.logs, makes_dirs=True)  # (write_rover creates them)
     if problem:  # before the calibration's minutes, not after
         _fail(problem)
+    if os.path.exists(args.output) and not (args.overwrite or _is_rover_file(args.output)):
+        _fail(f"{args.output} exists and is not a rover file: use --overwrite to replace it")
     effects = tuple(e.strip() for e in args.effects.split(",") if e.strip()) if args.effects else None
     if args.batch is not None and args.batch < 50:
         _fail(f"--batch {args.batch}: at least 50 simulated cycles are needed to fit a discrepancy")

@@ -1,4 +1,5 @@
-"""Where a command may write its output: never over one of the files it reads, never into a directory.
+"""Where a command may write its output: never over one of the files it reads, never into a directory, only
+where it can write.
 
 Checked before anything is read or written, so a mistyped ``-o`` costs no
 log and no long run (a calibration, a diagnosis).
@@ -7,21 +8,37 @@ log and no long run (a calibration, a diagnosis).
 from __future__ import annotations
 
 import os
+import tempfile
 
 
 def output_problem(output: str | os.PathLike | None, inputs=(), what: str = "-o",
                    makes_dirs: bool = False) -> str | None:
-    """Why ``output`` (a path; ``None`` or ``"-"``: stdout, always fine) cannot be written, or None: it is one
-    of ``inputs`` (the same file, by any name), an existing directory, or in a directory that does not exist
-    (unless the command ``makes_dirs``: it creates them)."""
+    """Why ``output`` (a path; ``None`` or ``"-"``: stdout, always fine) cannot be written, or None: it is empty,
+    one of ``inputs`` (the same file, by any name), an existing directory, in a directory that does not exist
+    (unless the command ``makes_dirs``: it creates them), or where this user cannot write (an existing file
+    without write permission; a directory, or for ``makes_dirs`` its nearest existing one, where no file can be
+    made: tried with a temporary file, removed at once)."""
     if output is None or str(output) == "-":
         return None
     out = os.fspath(output)
+    if not out:
+        return f"{what} '': name a file"
     if os.path.isdir(out):
         return f"{what} {out} is a directory: name a file"
     parent = os.path.dirname(os.path.abspath(out))
     if not makes_dirs and not os.path.isdir(parent):
         return f"{what} {out}: no directory {parent}"
+    existing = parent
+    while not os.path.isdir(existing) and os.path.dirname(existing) != existing:
+        existing = os.path.dirname(existing)
+    try:
+        fd, probe = tempfile.mkstemp(dir=existing, prefix=".slipest-write-check-")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        return f"{what} {out}: cannot write in {existing} ({exc.strerror or exc})"
+    if os.path.isfile(out) and not os.access(out, os.W_OK):
+        return f"{what} {out}: no permission to write it"
     if os.path.exists(out):
         for name in inputs:
             name = os.fspath(name)
