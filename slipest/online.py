@@ -104,7 +104,7 @@ METHODS = ("default", "eq515")
 ESTIMATED = ("ok", "repaired")
 #: Hints that say the data differ from the model, or how they were taken, not that the input is wrong ("fit"
 #: aside).
-MODEL_HINTS = ("imu", "encoder", "noise")
+MODEL_HINTS = ("imu", "encoder", "noise", "rover_speed")
 #: Cycles whose noise measures make the running noise estimate (their median) [-].
 NOISE_CYCLES = 9
 #: A cycle whose own noise measure exceeds the running estimate by this factor and by :data:`BURST_MARGIN` is a
@@ -457,6 +457,8 @@ class SlipEstimator:
         self._theta_offset = float(getattr(model, "angle_offset", 0.0))
         # a calibrated rover model answers for its IMU's signal path: no widening for a sluggish IMU on top
         self._imu_described = bool(getattr(model, "describes_imu_path", False))
+        # a rover model holds at its testbed's leg speeds (slipest.rover.surrogate.SPEED_MARGIN): say so once
+        self._testbed_speeds = getattr(model, "testbed_speeds", None)
         self._calibration = calibration
         if noise is not None and not (math.isfinite(noise) and noise >= 0):
             raise ValueError(f"noise={noise} g must be a finite number >= 0")
@@ -542,7 +544,8 @@ class SlipEstimator:
     def hints(self) -> dict:
         """What looks wrong with the input, once per kind: a sentence for people naming the likely mistake
         (``"units"``, ``"degrees"``, ``"timing"``: the IMU and the encoder disagree on the leg swaps and the
-        angle was corrected), saying how the IMU or the encoder differs from the model's (``"imu"``: it does
+        angle was corrected), saying a rover file is used outside the leg speeds it was calibrated at
+        (``"rover_speed"``), saying how the IMU or the encoder differs from the model's (``"imu"``: it does
         not settle after the leg swaps, see the module docstring; ``"encoder"``: it reports whole counts, and
         the angle is interpolated between them, :mod:`slipest.dequantize`; the kinds of :data:`MODEL_HINTS`),
         or saying that the data do not fit the model (``"fit"``, from :func:`fit_advice` as soon as it
@@ -669,6 +672,13 @@ class SlipEstimator:
             if lo <= omega * math.pi / 180.0 <= hi and "degrees" not in self._hints:
                 self._hints["degrees"] = (f"theta looks like it is in degrees (a leg speed of {omega:.3g} per s, "
                                           f"{omega * math.pi / 180:.3g} if degrees): slipest wants radians")
+            elif self._testbed_speeds is not None and "rover_speed" not in self._hints:
+                slo, shi = self._testbed_speeds
+                self._hints["rover_speed"] = (
+                    f"a leg speed of {omega:.3g} rad/s: the rover file was calibrated on testbed runs at "
+                    f"{slo:.3g}-{shi:.3g} rad/s and holds within {lo:.3g}-{hi:.3g}, so cycles at other speeds are not "
+                    "estimated (flagged 'speed'): calibrate with testbed runs at the speeds the rover drives, or "
+                    "estimate without --rover")
             return self._flagged(cyc, "speed", ref)
         tt, az, ph, repaired = self._clean(cyc)
         if self._correct is not None:

@@ -130,7 +130,10 @@ def load_rover(path, n_legs: int | None = None, base=None) -> RoverSurrogate:
     base: the inverse model it corrects (default: the one the file names, the
     shipped one or its file). :class:`RoverFileError` naming the file when
     it is missing, unreadable, not a rover file, of another version, made for
-    another number of legs, or made on another inverse model."""
+    another number of legs, or made on another inverse model. The model covers
+    the testbed's leg speeds within 10 % (the report's ``leg_speed.range``:
+    :class:`~slipest.rover.surrogate.RoverSurrogate`'s ``testbed_speeds``); the
+    estimator flags a cycle at another speed ``"speed"``."""
     doc, source = read_json(path, "", "rover", "slipest calibrate", RoverFileError)
     source = f"rover file {source}"
     validate_rover(doc, source)
@@ -148,12 +151,28 @@ def load_rover(path, n_legs: int | None = None, base=None) -> RoverSurrogate:
         model = RoverSurrogate.of(base, disc, np.asarray(doc["extra_cov"], dtype=float), rover_legs=legs,
                                   eq515=doc["eq515"], source=source, disturbance=doc.get("disturbance"),
                                   interval_scale=float(doc.get("interval_scale", 1.0)),
-                                  angle_offset=float(doc.get("angle_offset", 0.0)))
+                                  angle_offset=float(doc.get("angle_offset", 0.0)),
+                                  testbed_speeds=_testbed_speeds(doc, source))
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise RoverFileError(f"{source}: malformed rover model ({type(exc).__name__}: {exc})") from None
     if base.n_legs != legs:
         raise RoverFileError(f"{source}: the inverse model is for {base.n_legs} legs, the rover file for {legs}")
     return model
+
+
+def _testbed_speeds(doc: dict, source: str) -> tuple | None:
+    """The testbed logs' leg speeds ``(lo, hi)`` [rad/s] the report keeps (``report.leg_speed.range``), which the
+    rover model is used within (:data:`slipest.rover.surrogate.SPEED_MARGIN`); None for a file without them."""
+    report = doc["report"]
+    leg = report.get("leg_speed") if isinstance(report, dict) else None
+    speeds = leg.get("range") if isinstance(leg, dict) else None
+    if speeds is None:
+        return None
+    if not (isinstance(speeds, list) and len(speeds) == 2 and all(_number(v) and v > 0 for v in speeds)
+            and speeds[0] <= speeds[1]):
+        raise RoverFileError(f"{source}: report.leg_speed.range must be the testbed's leg speeds [lo, hi] rad/s, "
+                             f"got {speeds!r}")
+    return float(speeds[0]), float(speeds[1])
 
 
 #: Eq. 5.15's coefficients a rover file's ``eq515`` section holds (slipest.inverse.eq515.Eq515Inverse).
