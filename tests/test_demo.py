@@ -107,3 +107,16 @@ def test_demo_refuses_a_cycle_count_outside_its_drive_and_a_negative_seed(option
     assert exc.value.code == 2, err
     assert err.splitlines()[-1] == f"slipest demo: error: argument {option}: {value!r} {why}", err
     assert not out.splitlines()  # nothing started
+
+
+def test_demo_refuses_a_rover_file_that_cannot_be_used_as_replay_does(tmp_path, capsys):
+    """A bad rover file: exit 2 with the file named, as `slipest replay --rover` refuses it (demo gave 1)."""
+    from slipest.cli.main import main
+
+    bad = tmp_path / "rover.json"
+    bad.write_text('{"kind": "something else"}')
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        main(["demo", "--speed", "20", "--rover", str(bad)])
+    out, err = capsys.readouterr()
+    assert exc.value.code == 2 and "rover.json" in err and "not a slipest rover file" in err and not out

@@ -223,3 +223,12 @@ def test_a_log_the_model_cannot_explain_says_so_and_names_calibrate(tmp_path, ca
     assert "flagged (misfit 8)" in err
     assert "the data do not fit the estimator's model (8 of 8 cycles off it)" in err
     assert "'slipest calibrate'" in err and "the input looks wrong" not in err
+
+
+def test_a_given_dphi_is_not_scored_as_an_estimate(log_path, capsys):
+    """--truth with the soil given: the dphi rows are the value given (std 0), so its 'RMSE' and '95% coverage
+    0.000' scored the user's input as an estimate; the summary says it was given, beside the log's value."""
+    rc, out, err = run([log_path, "--method", "eq515", "--kS", 900, "--phiS", 0.5, "--phiD", 0.35, "--truth"], capsys)
+    assert rc == 0 and "truth: slip RMSE" in err
+    assert "truth: dphi was given (0.15 rad), not estimated; the log's metadata says 0.2 rad" in err
+    assert "truth: dphi (log metadata" not in err

@@ -371,8 +371,9 @@ def run(args: argparse.Namespace) -> int:
             from slipest.rover.file import load_rover
 
             rover = load_rover(args.rover, n_legs=scenario.n_legs)
-    except ValueError as exc:  # an unknown effect or parameter, a rover file that cannot be used: named
-        raise SystemExit(f"slipest demo: {exc}") from None
+    except ValueError as exc:  # an unknown effect or parameter, a rover file that cannot be used: named, exit 2
+        print(f"slipest demo: {exc}", file=sys.stderr)  # (a usage error, as replay's refusal of the same file)
+        raise SystemExit(2) from None
     period = 2 * math.pi / (scenario.n_legs * scenario.omega)
     n_cycles = len(scenario.cycles) if args.cycles is None else args.cycles  # (cycle_count: 1..DEMO_CYCLES)
     duration = n_cycles * period  # the last cycle driven is estimated at the end of the stream (finish)

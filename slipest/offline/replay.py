@@ -138,7 +138,11 @@ class TruthSummary:
             out.append("truth: no cycle had both an estimate and a reference slip")
         if self.no_truth:
             out.append(f"truth: {self.no_truth} estimated cycle(s) had no reference slip")
-        if self.derr:
+        if self.derr and not np.any(self.dstd):  # a dphi given (a known soil): nothing was estimated to score
+            given = sorted({round(self.dphi_true + e, 9) for e in self.derr})
+            out.append(f"truth: dphi was given ({', '.join(f'{g:g}' for g in given)} rad), not estimated; the log's "
+                       f"metadata says {self.dphi_true:g} rad")
+        elif self.derr:
             out.append(f"truth: dphi (log metadata {self.dphi_true:g} rad) " + self._figs(self.derr, self.dstd))
         return out
 
