@@ -26,37 +26,28 @@ def add_command(sub, name: str, summary: str, doc: str) -> argparse.ArgumentPars
                           formatter_class=argparse.RawDescriptionHelpFormatter)
 
 
-def leg_count(text: str) -> int:
-    """``--legs``: a whole number of legs >= 1 (argparse type)."""
-    try:
-        n = int(text)
-    except ValueError:
-        n = 0
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number of legs (a whole number >= 1)")
-    return n
+def whole_number(what: str, least: int):
+    """An argparse type: a whole number >= ``least``, else the error ``'TEXT' is not WHAT (a whole number >= N)``."""
+
+    def parse(text: str) -> int:
+        try:
+            n = int(text)
+        except ValueError:
+            n = least - 1
+        if n < least:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {what} (a whole number >= {least})")
+        return n
+
+    parse.__name__ = what.replace(" ", "_")
+    return parse
 
 
-def job_count(text: str) -> int:
-    """``--jobs``: a whole number of worker processes >= 1 (argparse type)."""
-    try:
-        n = int(text)
-    except ValueError:
-        n = 0
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number of worker processes (a whole number >= 1)")
-    return n
-
-
-def seed_number(text: str) -> int:
-    """``--seed``: a whole number >= 0, as numpy's generators take (argparse type)."""
-    try:
-        n = int(text)
-    except ValueError:
-        n = -1
-    if n < 0:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a seed (a whole number >= 0)")
-    return n
+#: ``--legs``: a whole number of legs >= 1.
+leg_count = whole_number("a number of legs", 1)
+#: ``--jobs``: a whole number of worker processes >= 1.
+job_count = whole_number("a number of worker processes", 1)
+#: ``--seed``: a whole number >= 0, as numpy's generators take.
+seed_number = whole_number("a seed", 0)
 
 
 def interrupt_on_sigterm():
