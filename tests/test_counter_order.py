@@ -10,10 +10,10 @@ from hypothesis import strategies as st
 
 from slipest.io.can_messages import IMU_SAMPLE, REORDER_FRAMES, frame_id
 from slipest.io.counter_order import CounterOrder
-from slipest.io.device_stream import WheelSamples, WheelStream
+from slipest.io.device_stream import WheelStream
 from slipest.offline.replay import Replay
 from tests.log_makers import can_frames, stream, write_can_log
-from tests.test_wheel_stream_restarts import device, feed
+from tests.test_wheel_stream_restarts import feed, feed_frames, late_frames
 
 M = 256
 
@@ -83,26 +83,11 @@ def test_a_window_the_counter_cannot_tell_apart_is_refused(bad):
         CounterOrder(*bad)
 
 
-def late_frames(n: int, late_by: int, every: int = 700):
-    """A CAN device's n frames with frames 400, 400 + every, ... each arriving ``late_by`` frames late."""
-    seq, t, az, th, host = device(n, seed=8, modulus=M, wrapped=True)
-    order = list(range(n))
-    late = list(range(400, n - 400, every))
-    for j in late:
-        order.remove(j)
-        order.insert(order.index(j + late_by) + 1, j)
-    return tuple(c[order] for c in (seq, t, az, th, host)), az, late
-
-
 @pytest.mark.parametrize("one_by_one", [False, True])
 def test_can_frames_a_few_late_are_put_back_and_lose_nothing(one_by_one):
     cols, az, late = late_frames(6000, REORDER_FRAMES - 1)
     s_ = WheelStream(seq_modulus=M, time_modulus=0.65536, reorder_window=REORDER_FRAMES)
-    if one_by_one:
-        s = WheelSamples.concatenate([s_.add(*(c[i:i + 1] for c in cols[:4]), cols[4][i:i + 1])
-                                      for i in range(6000)] + [s_.flush()])
-    else:
-        s = feed(s_, [cols], [cols[4]])
+    s = feed_frames(s_, cols, one_by_one)
     c = s_.counters()
     assert c["reordered"] == len(late) and c["out_of_order"] == 0 and c["frames_lost"] == 0
     np.testing.assert_array_equal(s.az, az)  # every sample in its place, none a NaN

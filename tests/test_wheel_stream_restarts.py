@@ -22,9 +22,29 @@ def device(n: int, *, seq0: int = 0, t0: float = 100.0, seed: int = 0, modulus: 
     return seq, (np.mod(t, 0.65536) if wrapped else t), az, theta, t
 
 
+def late_frames(n: int, late_by: int, every: int = 700):
+    """A CAN device's n frames (8-bit counter, wrapped times) with frames 400, 400 + every, ... each arriving
+    ``late_by`` frames late: the columns in arrival order, the az as sent, the late frames' indices."""
+    seq, t, az, th, host = device(n, seed=8, modulus=256, wrapped=True)
+    order = list(range(n))
+    late = list(range(400, n - 400, every))
+    for j in late:
+        order.remove(j)
+        order.insert(order.index(j + late_by) + 1, j)
+    return tuple(c[order] for c in (seq, t, az, th, host)), az, late
+
+
 def feed(stream: WheelStream, parts, intakes) -> WheelSamples:
     out = [stream.add(seq, t, az, th, intake) for (seq, t, az, th, _), intake in zip(parts, intakes)]
     return WheelSamples.concatenate(out + [stream.flush()])
+
+
+def feed_frames(stream: WheelStream, cols, one_by_one: bool) -> WheelSamples:
+    """Frames ``cols`` (seq, t, az, theta, arrival) fed in one call, or one call per frame, then flushed."""
+    if not one_by_one:
+        return feed(stream, [cols], [cols[4]])
+    return WheelSamples.concatenate([stream.add(*(c[i:i + 1] for c in cols[:4]), cols[4][i:i + 1])
+                                     for i in range(len(cols[0]))] + [stream.flush()])
 
 
 def test_a_restart_after_a_long_outage_is_neither_a_loss_nor_nan_rows():
@@ -83,19 +103,10 @@ def test_a_can_frame_sent_late_is_dropped_as_out_of_order_not_a_restart(one_by_o
     (0.655 s) ahead, a restart that shifted every later time (80 late frames of 40,000 lost every cycle). Now its
     counter and wrapped time going back together make it a reordering: dropped, the frame it came after having
     counted it lost."""
-    seq, t, az, th, host = device(6000, seed=8, modulus=256, wrapped=True)
-    order = list(range(6000))
-    late = list(range(400, 5600, 700))
-    for j in late:  # frame j comes 3 frames late
-        order.remove(j)
-        order.insert(order.index(j + 3) + 1, j)
+    cols, _, late = late_frames(6000, 3)  # frame j comes 3 frames late
+    host = device(6000, seed=8, modulus=256, wrapped=True)[4]
     stream = WheelStream(seq_modulus=256, time_modulus=0.65536)
-    cols = tuple(c[order] for c in (seq, t, az, th, host))
-    if one_by_one:
-        s = WheelSamples.concatenate([stream.add(*(c[i:i + 1] for c in cols[:4]), cols[4][i:i + 1])
-                                      for i in range(6000)] + [stream.flush()])
-    else:
-        s = feed(stream, [cols], [cols[4]])
+    s = feed_frames(stream, cols, one_by_one)
     c = stream.counters()
     assert c["out_of_order"] == len(late) and c["restarts"] == 0 and c["frames_lost"] == len(late)
     np.testing.assert_allclose(s.t - s.t[0], host - host[0], atol=1e-9)  # every time in place, none shifted
