@@ -1,6 +1,6 @@
 """Guards of the many-logs replay (and `diagnose --per-log`): -o never writes over a log it reads (a folder's
 too), the command's own earlier table in the folder is left out; a folder where no log gave an estimate says
-why in the table and exits 1; a reference slip outside [0, 1) is refused by --use-reference and --truth;
+why in the table and exits 1; a reference slip outside [0, 1) (+-inf too) is refused by --use-reference and --truth;
 ROS 2 bag joint states without positions and a bad --max-joint-gap get messages that say what is wrong; --jobs
 below 1 is a usage error."""
 
@@ -120,6 +120,27 @@ def test_replay_refuses_a_reference_slip_in_percent(percent_log, flags, capsys):
     assert "truth: slip" not in err  # no RMSE against the impossible reference
     assert main(["replay", str(percent_log)]) == 0  # a blind replay does not read the reference
     capsys.readouterr()
+
+
+@pytest.mark.parametrize("value", [float("inf"), float("-inf")])
+def test_replay_refuses_an_infinite_reference_slip_and_takes_nan_as_none(drive, value, tmp_path, capsys):
+    """QA s25: an ``inf`` reference slip was passed over (only finite values were checked) where -0.05 and 25
+    are refused; NaN is "no reference" and stays taken."""
+    s, sc = drive
+    slip = s.slip.copy()
+    slip[3000] = value
+    slip[3100] = float("nan")
+    path = tmp_path / "inf.csv"
+    with LogWriter(path, ("t", "az", "theta", "slip"), metadata=sc.metadata()) as w:
+        w.write(s.t, s.az, s.theta, slip)
+    rc, err = slipest_in_process(capsys, "replay", path, "--truth", "--chunk-rows", "500")
+    assert rc == 2 and f"{path}: slip {value:g} at t = {s.t[3000]:.3f} s is outside [0, 1)" in err, err
+    slip[3000] = 0.2
+    nan_only = tmp_path / "nan.csv"
+    with LogWriter(nan_only, ("t", "az", "theta", "slip"), metadata=sc.metadata()) as w:
+        w.write(s.t, s.az, s.theta, slip)
+    rc, err = slipest_in_process(capsys, "replay", nan_only, "--truth", "--chunk-rows", "500")
+    assert rc == 0 and "truth: slip" in err, err
 
 
 def test_folder_replay_with_use_reference_gives_the_percent_log_an_error_row(drive, percent_log, tmp_path, capsys):

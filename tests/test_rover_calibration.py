@@ -184,7 +184,18 @@ def test_a_rover_file_for_other_legs_or_another_version_is_refused_naming_it(tmp
                             ({"eq515": {**doc["eq515"], "eq515": {**doc["eq515"]["eq515"], "rmse_end_to_end": 0}}},
                              "rmse_end_to_end must be > 0"),
                             ({"eq515": {**doc["eq515"], "model": {"params": {"nL": 4, "omega": "x"}}}},
-                             "omega 'x' is not a leg speed")):
+                             "omega 'x' is not a leg speed"),
+                            # QA s25: these were converted and applied (intervals 5 times wider), while
+                            # format_version "1" was refused
+                            ({"interval_scale": "5"}, "interval_scale '5' is a string, not a number"),
+                            ({"interval_scale": True}, "interval_scale True is a boolean, not a number"),
+                            ({"angle_offset": "0.01"}, "angle_offset '0.01' is a string, not a number"),
+                            ({"extra_cov": [["1"] * 20] * 20}, r"extra_cov\[0\]\[0\] '1' is a string"),
+                            ({"discrepancy": {**doc["discrepancy"], "coef": [["0.1"] * len(row) for row in
+                                                                         doc["discrepancy"]["coef"]]}},
+                             r"discrepancy\.coef\[0\]\[0\] '0\.1' is a string"),
+                            ({"disturbance": {"phase": [0.0, 0.1, 0.2, "0.3"], "az": [0.0] * 4}},
+                             r"disturbance\.phase\[3\] '0\.3' is a string")):
         bad = tmp_path / "bad.json"
         bad.write_text(json.dumps({**doc, **change}))
         with pytest.raises(RoverFileError, match=message):
@@ -308,6 +319,58 @@ def test_calibrate_refuses_slips_in_percent_or_negative_a_log_given_twice_and_mi
     rc, err = slipest_in_process(capsys, "calibrate", tb[0], slow, "--no-progress", "-o", tmp_path / "r.json")
     assert rc == 1 and "different IMU rates" in err and "500 Hz" in err, err
     assert not (tmp_path / "r.json").exists()
+
+
+def test_calibrate_refuses_runs_appended_in_one_log_naming_the_row_and_the_times(tmp_path, rover_logs, capsys):
+    """QA s25: two testbed runs appended in one CSV (data rows only, the time restarting at 0) were calibrated
+    as one run on one soil (kappa 0.64 for a true 0.3). A time that goes back or repeats is refused before the
+    calibration runs, naming the file, the data row and the times (the CLI in this process). Only the time is
+    checked: a leg angle that goes back (the rover reversing) has its cycles flagged, as before."""
+    _, tb, _ = rover_logs
+    a, b = read_log(tb[0]), read_log(tb[1])
+    out = tmp_path / "r.json"
+    appended = tmp_path / "appended.csv"
+    with LogWriter(appended, ("t", "az", "theta", "slip"), metadata={"nL": 4, "rate": "1000"}) as w:
+        w.write(a.t, a.az, a.theta, a.slip)
+        w.write(b.t, b.az, b.theta, b.slip)
+    rc, err = slipest_in_process(capsys, "calibrate", appended, "--no-progress", "-o", out)
+    assert rc == 1 and (f"appended.csv: the time goes back at data row {len(a) + 1}: t = 0 s after {a.t[-1]:.12g} s"
+                        in err) and "give each run as its own log" in err, err
+    repeated = tmp_path / "repeated.csv"
+    t = a.t.copy()
+    t[1000] = t[999]
+    with LogWriter(repeated, ("t", "az", "theta", "slip"), metadata={"nL": 4, "rate": "1000"}) as w:
+        w.write(t, a.az, a.theta, a.slip)
+    rc, err = slipest_in_process(capsys, "calibrate", repeated, tb[1], "--no-progress", "-o", out)
+    assert rc == 1 and f"repeated.csv: the time does not increase at data row 1001: t = {t[999]:.12g} s" in err, err
+    assert not out.exists()
+
+
+def test_calibrate_refuses_the_same_samples_under_two_names_and_an_infinite_reference_slip(tmp_path, rover_logs,
+                                                                                           capsys):
+    """QA s25: a copy of a testbed log with one more comment line passed the check of a log given twice (it
+    compared the files' bytes), so the held-out check tested the log on itself; an ``inf`` in the reference slip
+    was passed over (only finite values were checked) while -0.05 and 25 were refused. Both are refused before
+    the calibration runs, naming the files (the CLI in this process); NaN stays "no reference"."""
+    _, tb, _ = rover_logs
+    out = tmp_path / "r.json"
+    copy = tmp_path / "copy.csv"
+    copy.write_text("# copied from the testbed's disk\n" + open(tb[0]).read())
+    rc, err = slipest_in_process(capsys, "calibrate", tb[0], copy, "--no-progress", "-o", out)
+    assert rc == 1 and f"{copy} is the same log as {tb[0]} (the same t, az, theta and slip samples)" in err, err
+    log = read_log(tb[0])
+    for name, value in (("inf.csv", math.inf), ("minus_inf.csv", -math.inf)):
+        slip = log.slip.copy()
+        slip[1500] = value
+        slip[1600] = math.nan
+        with LogWriter(tmp_path / name, ("t", "az", "theta", "slip"), metadata={"nL": 4, "rate": "1000"}) as w:
+            w.write(log.t, log.az, log.theta, slip)
+        rc, err = slipest_in_process(capsys, "calibrate", tmp_path / name, tb[1], "--no-progress", "-o", out)
+        assert rc == 1 and f"{name}: slip {value:g} at t = {log.t[1500]:.3f} s is outside [0, 1)" in err, err
+    assert not out.exists()
+    from slipest.offline.reference_slip import check_reference_slip
+
+    check_reference_slip(np.array([0.1, math.nan, 0.2]), np.arange(3.0), "nan.csv")  # NaN: no reference, taken
 
 
 def test_a_log_at_one_slip_level_is_refused_naming_it():

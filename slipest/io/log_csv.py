@@ -99,9 +99,10 @@ _NAME_BAD_CHARS = set(",#\r\n\t ")
 
 def slip_out_of_range(slip):
     """Where a reference slip [-] (a number or an array) is outside ``[0, 1)``, the fraction the model's slip is:
-    in percent, negative (a sign convention), 1 and above.  NaN (no reference) is not.  The one statement of the
-    range: a log refuses such a value (:func:`slipest.offline.reference_slip.check_reference_slip`), a live
-    stream skips it (:func:`slipest.io.can_source.add_record`, :class:`slipest.io.serial_source.SerialSource`)."""
+    in percent, negative (a sign convention), 1 and above, ``inf`` and ``-inf``.  NaN (no reference) is not.
+    The one statement of the range: a log refuses such a value
+    (:func:`slipest.offline.reference_slip.check_reference_slip`), a live stream skips it
+    (:func:`slipest.io.can_source.add_record`, :class:`slipest.io.serial_source.SerialSource`)."""
     return (slip < 0.0) | (slip >= 1.0)
 
 

@@ -9,9 +9,11 @@ result (:func:`slipest.rover.file.save_rover`).
 
 Errors name the file: :class:`~slipest.io.log_csv.LogFormatError` (a
 malformed log, no ``slip`` column, a slip outside ``[0, 1)``: in percent,
-say), ``OSError`` (cannot read it), ``ValueError`` (too few usable cycles,
-one slip level in a log, the same log given twice, logs of different IMU
-rates or that disagree on the hardware, an unknown effect).
+say; a time that goes back or repeats: runs appended in one file, which a
+calibration would take for one run on one soil), ``OSError`` (cannot read
+it), ``ValueError`` (too few usable cycles, one slip level in a log, the
+same log given twice: the same samples, whatever the file's bytes; logs of
+different IMU rates or that disagree on the hardware, an unknown effect).
 """
 
 from __future__ import annotations
@@ -46,8 +48,9 @@ def calibrate_logs(paths, options=None, *, legs: int | None = None, MH: float | 
             raise LogFormatError("no 'slip' column: calibration needs the slip of every leg cycle (a testbed's "
                                  "reference, visual odometry)", p)
         check_reference_slip(log.slip, log.t, p)
+        _check_time_increases(log.t, p)
         logs.append(log)
-    _check_distinct(paths)
+    _check_distinct(logs, paths)
     _check_rates(logs, paths)
     diag = DiagnoseOptions(effects=options.effects, legs=legs, MH=MH, mF=mF, lS=lS)
     diag.checked_effects()
@@ -65,19 +68,47 @@ def calibrate_logs(paths, options=None, *, legs: int | None = None, MH: float | 
 RATE_TOLERANCE = 0.02
 
 
-def _check_distinct(paths) -> None:
-    """ValueError when two of the logs are the same file or the same bytes (its held-out check would then test
-    a log on itself)."""
+def _check_time_increases(t, path: str) -> None:
+    """:class:`~slipest.io.log_csv.LogFormatError` naming ``path``, the data row and the times where the log's
+    time ``t`` [s] first goes back or repeats (NaN times are passed over, compared with the times around them).
+    A calibration takes each log for one run on one soil: two runs appended in one file (the time restarts)
+    would be fitted as one."""
+    t = np.asarray(t, dtype=float)
+    rows = np.flatnonzero(~np.isnan(t))
+    steps = np.diff(t[rows])
+    back = np.flatnonzero(~(steps > 0.0))
+    if not back.size:
+        return
+    k = int(back[0])
+    before, after = float(t[rows[k]]), float(t[rows[k + 1]])
+    n_back = int(np.count_nonzero(steps < 0.0))
+    how = "goes back" if after < before else "does not increase"
+    raise LogFormatError(f"the time {how} at data row {rows[k + 1] + 1}: t = {after:.12g} s after {before:.12g} s "
+                         f"({n_back} place(s) where it goes back); a testbed log is one run on one soil: runs "
+                         "appended in one file? give each run as its own log", path)
+
+
+def _samples_digest(log) -> str:
+    """sha256 of a log's samples as read (``t``, ``az``, ``theta``, ``slip``): equal for the same run whatever its
+    comments, metadata or number formatting (``-0`` is 0, every NaN the same)."""
+    h = hashlib.sha256()
+    for column in (log.t, log.az, log.theta, log.slip):
+        values = np.asarray(column, dtype=np.float64) + 0.0
+        values = np.ascontiguousarray(np.where(np.isnan(values), np.nan, values))
+        h.update(len(values).to_bytes(8, "little"))
+        h.update(values.tobytes())
+    return h.hexdigest()
+
+
+def _check_distinct(logs, paths) -> None:
+    """ValueError naming both files when two of the logs hold the same samples (the same file under two names, or
+    a copy with other comments: its held-out check would test a log on itself)."""
     seen: dict = {}
-    for p in paths:
-        h = hashlib.sha256()
-        with open(p, "rb") as f:
-            for block in iter(lambda: f.read(1 << 20), b""):
-                h.update(block)
-        digest = h.hexdigest()
+    for log, p in zip(logs, paths):
+        digest = _samples_digest(log)
         if digest in seen:
-            raise ValueError(f"{p} is the same log as {seen[digest]}: give each testbed run once (a run given twice "
-                             "would be held out against itself)")
+            raise ValueError(f"{p} is the same log as {seen[digest]} (the same t, az, theta and slip samples): give "
+                             "each testbed run once (a run given twice would be held out against itself)")
         seen[digest] = p
 
 

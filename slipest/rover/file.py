@@ -130,7 +130,9 @@ def load_rover(path, n_legs: int | None = None, base=None) -> RoverSurrogate:
     base: the inverse model it corrects (default: the one the file names, the
     shipped one or its file). :class:`RoverFileError` naming the file when
     it is missing, unreadable, not a rover file, of another version, made for
-    another number of legs, or made on another inverse model. The model covers
+    another number of legs, or made on another inverse model, or when a
+    numeric field holds no JSON number (``"interval_scale": "5"``, a boolean:
+    refused naming the field, not converted). The model covers
     the testbed's leg speeds within 10 % (the report's ``leg_speed.range``:
     :class:`~slipest.rover.surrogate.RoverSurrogate`'s ``testbed_speeds``); the
     estimator flags a cycle at another speed ``"speed"``."""
@@ -144,14 +146,15 @@ def load_rover(path, n_legs: int | None = None, base=None) -> RoverSurrogate:
         raise RoverFileError(f"{source} was made for a {legs}-leg wheel-leg, not {n_legs} legs: calibrate this "
                              "rover's own testbed logs (slipest calibrate --legs N)")
     _check_sections(doc, source)
+    interval_scale = _json_number(doc.get("interval_scale", 1.0), "interval_scale", source)
+    angle_offset = _json_number(doc.get("angle_offset", 0.0), "angle_offset", source)
     if base is None:
         base = _base_model(doc["base_model"], source)
     try:
         disc = Discrepancy.from_dict(doc["discrepancy"])
         model = RoverSurrogate.of(base, disc, np.asarray(doc["extra_cov"], dtype=float), rover_legs=legs,
                                   eq515=doc["eq515"], source=source, disturbance=doc.get("disturbance"),
-                                  interval_scale=float(doc.get("interval_scale", 1.0)),
-                                  angle_offset=float(doc.get("angle_offset", 0.0)),
+                                  interval_scale=interval_scale, angle_offset=angle_offset,
                                   testbed_speeds=_testbed_speeds(doc, source))
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise RoverFileError(f"{source}: malformed rover model ({type(exc).__name__}: {exc})") from None
@@ -185,11 +188,50 @@ def _number(x) -> bool:
     return isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x)
 
 
+def _json_type(x) -> str:
+    """What a JSON value is, in a user's words (for the error messages)."""
+    if x is None:
+        return "null"
+    if isinstance(x, bool):
+        return "a boolean"
+    if isinstance(x, str):
+        return "a string"
+    return "an object" if isinstance(x, dict) else "an array" if isinstance(x, list) else type(x).__name__
+
+
+def _json_number(x, field: str, source: str) -> float:
+    """A numeric field's value as a float; RoverFileError naming ``field`` when it is no JSON number (a string
+    such as ``"5"``, a boolean, null: refused, as ``format_version`` ``"1"`` is, not converted). Whether the
+    number is in range is the model's check (:class:`~slipest.rover.surrogate.RoverSurrogate`)."""
+    if isinstance(x, bool) or not isinstance(x, (int, float)):
+        raise RoverFileError(f"{source}: {field} {x!r} is {_json_type(x)}, not a number")
+    return float(x)
+
+
+def _check_json_numbers(x, field: str, source: str) -> None:
+    """RoverFileError naming the entry (``field[i][j]``) when an array of numbers holds something else than a JSON
+    number or null (null: a non-finite value as :func:`save_rover` writes it, which the model's checks refuse
+    where it matters): a string or a boolean would otherwise be converted by numpy."""
+    if isinstance(x, list):
+        for i, v in enumerate(x):
+            _check_json_numbers(v, f"{field}[{i}]", source)
+    elif x is not None:
+        _json_number(x, field, source)
+
+
 def _check_sections(doc: dict, source: str) -> None:
     """RoverFileError naming the field when a section has the wrong type or a value that cannot be used."""
     if not isinstance(doc["discrepancy"], dict):
         raise RoverFileError(f"{source}: discrepancy must be an object, not {type(doc['discrepancy']).__name__}")
+    disc = doc["discrepancy"]
+    for key in ("center", "halfwidth", "terms", "coef"):
+        _check_json_numbers(disc.get(key), f"discrepancy.{key}", source)
     cov = doc["extra_cov"]
+    _check_json_numbers(cov, "extra_cov", source)
+    disturbance = doc.get("disturbance")
+    if isinstance(disturbance, dict):
+        for key in ("phase", "az"):
+            _check_json_numbers(disturbance.get(key), f"disturbance.{key}", source)
     try:
         arr = np.asarray(cov, dtype=float)
     except (TypeError, ValueError):
