@@ -206,7 +206,7 @@ def _scenario_sets_noise(path: str | None) -> bool:
     try:
         with open(path, "rb") as fh:
             return "noise" in tomllib.load(fh).get("imu", {})
-    except (OSError, tomllib.TOMLDecodeError):
+    except (OSError, ValueError):  # not TOML, not UTF-8 text (TOMLDecodeError, UnicodeDecodeError: ValueErrors)
         return False  # build_scenario reports the problem
 
 
@@ -227,8 +227,15 @@ def build_plan(args) -> FaultPlan:
 def output_problems(args) -> list[str]:
     """Why ``--report`` and ``--send-log`` could not be written at the end of the run: a directory that does
     not exist or cannot be written in, a directory named as the file, a file that cannot be written, the
-    scenario file, both options naming the same file.  Checked before the run, which they would outlast."""
+    scenario file, both options naming the same file.  Checked before the run, which they would outlast.  And why
+    ``--link`` (serial) could not be made: its directory does not exist or cannot be written in, or it names a
+    directory or the scenario file (the symbolic link to the pty is made there when the device opens)."""
     problems = []
+    link = getattr(args, "link", None)
+    if link:
+        problem = output_problem(link, inputs=[args.scenario] if args.scenario else [], what="--link")
+        if problem:
+            problems.append(f"{problem} (the symbolic link to the device's pty is made there)")
     named = {}
     for option, path in (("--report", args.report), ("--send-log", args.send_log)):
         if not path:

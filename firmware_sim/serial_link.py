@@ -105,8 +105,13 @@ class PtyLink(SerialLink):
                 os.unlink(tmp)
             except FileNotFoundError:
                 pass
-            os.symlink(self.path, tmp)
-            os.replace(tmp, self.link_path)
+            try:
+                os.symlink(self.path, tmp)
+                os.replace(tmp, self.link_path)
+            except OSError as exc:  # (the command line checked the directory before the run)
+                where = os.path.dirname(os.path.abspath(self.link_path))
+                raise OSError(exc.errno, f"--link {self.link_path}: cannot make the link to {self.path} in "
+                                         f"{where}: {exc.strerror or exc}") from None
         self.announce(f"serial device {self.path}" + (f" (link {self.link_path})" if self.link_path else ""))
 
     def ready(self) -> bool:

@@ -1,6 +1,7 @@
 """`slipest simulate`: the log it writes, its reference values, its scenario files and its errors."""
 
 import math
+import time
 
 import numpy as np
 import pytest
@@ -331,6 +332,67 @@ def test_simulate_refuses_a_leg_so_slow_one_cycle_would_take_gigabytes(tmp_path,
     if doc is not None:
         assert "slow.toml" in text and "leg cycle 2 " in text
     assert not out.exists()
+
+
+@pytest.mark.parametrize("argv, doc, message", [
+    (["--cycles", "100000000000"], None,
+     "--cycles=100000000000: 100,000,000,000 leg cycles would take up to 3e+04 GB of memory"),
+    ([], "[[segment]]\ncycles = 2\n[[segment]]\ncycles = 100000000000\nslip = 0.2\n",
+     "big.toml: segment 2: cycles = 100000000000 (the scenario's cycles in all: 100,000,000,002): "
+     "100,000,000,002 leg cycles would take up to 3e+04 GB"),
+    # few enough cycles to build, too many samples to write (QA s25: a run of hours towards a 100 GB log)
+    (["--cycles", "1000000"], None, "1,000,000 leg cycles lasting 2.493e+06 s at the IMU rate 1000 Hz are 2.49e+09 "
+                                    "samples, a log of about 99.7 GB; a run may have at most 1e+09 samples"),
+])
+def test_simulate_refuses_a_run_too_large_before_it_allocates(tmp_path, capsys, argv, doc, message):
+    """QA s25: ``--cycles 100000000000`` (and a scenario file's ``cycles``) died with a MemoryError traceback while
+    building the cycles; now refused first, naming the option or the file and segment, and the size."""
+    out = tmp_path / "run.csv"
+    if doc is not None:
+        scenario = tmp_path / "big.toml"
+        scenario.write_text(doc)
+        argv = ["--scenario", str(scenario)]
+    t0 = time.monotonic()
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate", *argv, "-o", str(out)])
+    assert message in str(exc.value), str(exc.value)
+    assert not out.exists() and "Traceback" not in capsys.readouterr().err
+    assert time.monotonic() - t0 < 20  # refused before any cycle is simulated
+
+
+@pytest.mark.parametrize("argv, doc, message", [
+    (["--omega", "1e6", "--cycles", "20"], None,
+     "leg cycle 1 at omega=1e+06 rad/s with 4 legs lasts 1.57e-06 s, 0.00157 samples at the IMU rate 1000 Hz; "
+     "a leg cycle must last at least 8 samples: give a leg speed omega <= 190 rad/s or a rate >= 5.1e+06 Hz"),
+    ([], "[model]\nnL = 100000\n[[segment]]\ncycles = 2\n",
+     "legs.toml: leg cycle 1 at omega=0.63 rad/s with 100000 legs lasts 9.97e-05 s, 0.0997 samples at the IMU "
+     "rate 1000 Hz"),
+    (["--cycles", "2", "--rate", "3"], None, "7.48 samples at the IMU rate 3 Hz"),
+])
+def test_simulate_refuses_a_leg_cycle_shorter_than_a_few_samples(tmp_path, argv, doc, message):
+    """QA s25: ``--omega 1e6 --cycles 20`` wrote one data row and said "wrote 20 leg cycles" (a cycle shorter than a
+    sample); now refused, naming the leg speed, the legs and the rate, and what would do."""
+    out = tmp_path / "run.csv"
+    if doc is not None:
+        scenario = tmp_path / "legs.toml"
+        scenario.write_text(doc)
+        argv = ["--scenario", str(scenario)]
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate", *argv, "-o", str(out)])
+    assert message in str(exc.value), str(exc.value)
+    assert not out.exists()
+    assert main(["simulate", "--cycles", "2", "--rate", "5", "-o", str(out)]) == 0  # 12.5 samples a cycle: taken
+    assert len(read_log(out)) == 25
+
+
+def test_simulate_names_a_scenario_file_that_is_not_utf8_text(tmp_path, capsys):
+    """QA s25: the error of a scenario file that is not UTF-8 named no file ("'utf-8' codec can't decode ...")."""
+    scenario = tmp_path / "binary.toml"
+    scenario.write_bytes(b"\xff\xfe[[segment]]\ncycles = 2\n")
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate", "--scenario", str(scenario), "-o", str(tmp_path / "run.csv")])
+    assert str(exc.value) == (f"slipest simulate: {scenario}: not UTF-8 text (byte 0xff at offset 0): a scenario "
+                              "file is TOML text"), str(exc.value)
 
 
 def test_simulate_help_states_the_leg_speed_floor(capsys):

@@ -430,6 +430,27 @@ def _refused_in_process(capsys, monkeypatch, *argv) -> tuple[int, list[str], lis
     return exc.value.code, out.splitlines(), err.splitlines()
 
 
+def test_cli_names_itself_and_the_file_for_a_scenario_it_cannot_use_and_a_link_it_cannot_make(tmp_path, capsys,
+                                                                                              monkeypatch):
+    """QA s25: a missing scenario file was reported as "slipest simulate: cannot read scenario"; one that is not
+    UTF-8 without its name; ``--link /proc/x`` only when the device opened ("No such file or directory:
+    '/dev/pts/0' -> '/proc/x.26051.tmp'"). Each is refused before the run, in firmware-sim's words."""
+    binary = tmp_path / "binary.toml"
+    binary.write_bytes(b"\xff[[segment]]\ncycles = 2\n")
+    cases = [(["--scenario", str(tmp_path / "missing.toml")],
+              f"error: cannot read scenario {tmp_path / 'missing.toml'}: No such file or directory"),
+             (["--scenario", str(binary)], f"error: {binary}: not UTF-8 text (byte 0xff at offset 0)"),
+             (["--link", str(tmp_path / "no_dir" / "imu")],
+              f"error: --link {tmp_path / 'no_dir' / 'imu'}: no directory")]
+    if os.path.isdir("/proc"):
+        cases.append((["--link", "/proc/slipest_link"], "error: --link /proc/slipest_link: cannot write in /proc"))
+    for argv, message in cases:
+        rc, lines, err = _refused_in_process(capsys, monkeypatch, "serial", "--cycles", "1", "--wait-peer", "1", *argv)
+        stderr = "\n".join(err)
+        assert rc == 2 and err[-1].startswith("firmware-sim: ") and message in err[-1], stderr
+        assert "slipest simulate" not in stderr and "Traceback" not in stderr and not lines
+
+
 def test_cli_refuses_byte_corruption_on_can(capsys, monkeypatch):
     rc, _, err = _refused_in_process(capsys, monkeypatch, "can", "-i", "virtual", "-c", "x", "--corrupt-rate", "0.01")
     assert rc == 2

@@ -11,7 +11,9 @@ file (-o) is written whole or not at all: the run goes to a temporary file
 beside it, which replaces the file only once the last cycle is written; on
 an error or an interruption (Ctrl-C, SIGTERM) the previous file is left as
 it was. A leg cycle is simulated at once, so a cycle may last at most
-6,000,000 model steps (10 minutes at the default dt=1e-4 s).
+6,000,000 model steps (10 minutes at the default dt=1e-4 s), and it must last
+at least 8 IMU samples. A run holds at most 1,000,000 leg cycles and
+1,000,000,000 samples (a log of about 40 GB; 11.6 days at 1 kHz).
 """
 
 from __future__ import annotations
@@ -49,6 +51,13 @@ SOURCE = "slipest simulate"
 #: Most model steps one leg cycle may take: a cycle is simulated whole, at about 80 bytes of memory per step
 #: (6e6 steps: 10 minutes at the default dt=1e-4 s, about 0.5 GB).
 MAX_CYCLE_STEPS = 6_000_000
+#: Fewest IMU samples a leg cycle may last: a shorter one (a leg speed too fast for the rate) is no cycle a log
+#: shows (``--omega 1e6`` wrote one row for 20 cycles).
+MIN_CYCLE_SAMPLES = 8
+#: Most samples a run may have: 1e9 rows are a log of about 40 GB (11.6 days at 1 kHz).
+MAX_SAMPLES = 1_000_000_000
+#: Bytes a log row takes (``t,az,theta,slip``), for the messages.
+_ROW_BYTES = 40
 
 
 def _simulated(path: str) -> bool:
@@ -77,8 +86,10 @@ def add_scenario_arguments(
     g.add_argument("--legs", type=leg_count, default=4, help="number of legs of the wheel-leg (default 4)")
     g.add_argument("--omega", type=float, default=None,
                    help="leg speed [rad/s] (default 0.63; a scenario file sets it per segment); a leg cycle may "
-                   "last at most 6e6 model steps (10 min at the default dt: omega >= 0.0027 with 4 legs)")
-    g.add_argument("--cycles", type=int, default=10, help="number of leg cycles (default 10)")
+                   "last at most 6e6 model steps (10 min at the default dt: omega >= 0.0027 with 4 legs) and at "
+                   "least 8 IMU samples (omega <= 196 with 4 legs at 1000 Hz)")
+    g.add_argument("--cycles", type=int, default=10,
+                   help="number of leg cycles (default 10; at most 1e6, and 1e9 samples in all)")
     g.add_argument("--rate", type=float, default=None, help="IMU sample rate [Hz] (default 1000)")
     g.add_argument("--noise", type=float, default=None, help=noise_help)
     g.add_argument("--seed", type=seed_number, default=None, help=seed_help + " (a whole number >= 0)")
@@ -99,13 +110,21 @@ def _ceil_2_digits(x: float) -> float:
     return math.ceil(x / scale * (1 - 1e-12)) * scale
 
 
-def check_cycle_length(scenario: Scenario) -> None:
+def _floor_2_digits(x: float) -> float:
+    """``x > 0`` rounded down to two significant digits (a ceiling a user can type and that is enough)."""
+    scale = 10.0 ** (math.floor(math.log10(x)) - 1)
+    return math.floor(x / scale * (1 + 1e-12)) * scale
+
+
+def check_lengths(scenario: Scenario) -> None:
     """ValueError when a leg cycle of ``scenario`` would take more than :data:`MAX_CYCLE_STEPS` model steps
-    (a cycle is simulated whole: its memory grows with its length), naming the cycle and the leg speed
-    that would do."""
+    (a cycle is simulated whole: its memory grows with its length) or last fewer than :data:`MIN_CYCLE_SAMPLES`
+    IMU samples, naming the cycle, its leg speed, the rate and the leg speed (or rate) that would do; or when the
+    run would have more than :data:`MAX_SAMPLES` samples, naming how many and the log's size."""
     from slipest.model.stream import cycle_starts
 
-    periods = np.diff(cycle_starts(scenario))
+    starts = cycle_starts(scenario)
+    periods = np.diff(starts)
     j = int(np.argmax(periods))
     steps = periods[j] / scenario.dt
     if steps > MAX_CYCLE_STEPS:
@@ -116,15 +135,39 @@ def check_cycle_length(scenario: Scenario) -> None:
             f"dt={scenario.dt:g} s; a cycle is simulated at once and may take at most {MAX_CYCLE_STEPS:.0e} "
             f"steps (10 minutes at the default dt; more would need gigabytes of memory): give a leg speed "
             f"omega >= {floor:g} rad/s")
+    short = np.flatnonzero(periods * scenario.rate < MIN_CYCLE_SAMPLES)
+    if short.size:
+        j = int(short[0])
+        samples = periods[j] * scenario.rate
+        omega = scenario.cycles[j].omega
+        raise ValueError(
+            f"leg cycle {j + 1} at omega={omega:g} rad/s with {scenario.n_legs} legs lasts {periods[j]:.3g} s, "
+            f"{samples:.3g} samples at the IMU rate {scenario.rate:g} Hz; a leg cycle must last at least "
+            f"{MIN_CYCLE_SAMPLES} samples: give a leg speed omega <= "
+            f"{_floor_2_digits(omega * samples / MIN_CYCLE_SAMPLES):g} rad/s or a rate >= "
+            f"{_ceil_2_digits(scenario.rate * MIN_CYCLE_SAMPLES / samples):g} Hz")
+    total = math.ceil(starts[-1] * scenario.rate - 1e-9)
+    if total > MAX_SAMPLES:
+        raise ValueError(
+            f"{len(scenario.cycles):,} leg cycles lasting {starts[-1]:.4g} s at the IMU rate {scenario.rate:g} Hz are "
+            f"{total:.3g} samples, a log of about {total * _ROW_BYTES / 1e9:.3g} GB; a run may have at most "
+            f"{MAX_SAMPLES:.0e} samples ({MAX_SAMPLES * _ROW_BYTES / 1e9:.0f} GB): simulate fewer cycles (--cycles, or "
+            "cycles in a scenario's [[segment]]) or at a lower rate")
 
 
 def build_scenario(args: argparse.Namespace) -> Scenario:
     """The scenario the options describe (a TOML file's imu settings can be overridden by options).
 
-    SystemExit naming the file (and its section and key) when a scenario file cannot be used; ValueError
-    naming the option or parameter when the options describe no valid scenario (e.g. a negative
-    ``--seed``, a non-finite parameter, a leg cycle longer than :data:`MAX_CYCLE_STEPS` model steps).
+    ValueError when there is none, worded for any command that takes these options (``slipest simulate``,
+    ``firmware-sim``: each says its name): naming the scenario file (and its section, segment and key) when it
+    cannot be read, is not UTF-8 TOML or describes no valid scenario; naming the option or parameter when the
+    options describe none (e.g. a negative ``--seed``, a non-finite parameter, more than
+    :data:`~slipest.model.scenario.MAX_CYCLES` leg cycles: refused before they are built); and from
+    :func:`check_lengths` (a leg cycle longer than :data:`MAX_CYCLE_STEPS` model steps or shorter than
+    :data:`MIN_CYCLE_SAMPLES` samples, a run of more than :data:`MAX_SAMPLES` samples).
     """
+    from slipest.model.scenario import check_cycle_count
+
     effects = []
     if args.effect:
         from slipest.model.effects import parse_effect_arg
@@ -135,9 +178,12 @@ def build_scenario(args: argparse.Namespace) -> Scenario:
             with open(args.scenario, "rb") as fh:
                 doc = tomllib.load(fh)
         except tomllib.TOMLDecodeError as exc:
-            raise SystemExit(f"slipest simulate: {args.scenario}: not valid TOML: {exc}") from None
+            raise ValueError(f"{args.scenario}: not valid TOML: {exc}") from None
+        except UnicodeDecodeError as exc:
+            raise ValueError(f"{args.scenario}: not UTF-8 text (byte {exc.object[exc.start]:#04x} at offset "
+                             f"{exc.start}): a scenario file is TOML text") from None
         except OSError as exc:
-            raise SystemExit(f"slipest simulate: cannot read scenario {args.scenario}: {exc.strerror}") from None
+            raise ValueError(f"cannot read scenario {args.scenario}: {exc.strerror or exc}") from None
         # the options go into the document only where its sections have the right shape: a wrong one is
         # reported by Scenario.from_dict, naming the section
         imu = doc.setdefault("imu", {})
@@ -148,13 +194,13 @@ def build_scenario(args: argparse.Namespace) -> Scenario:
         if effects and isinstance(doc.get("effect", []), list):
             doc["effect"] = list(doc.get("effect", [])) + effects
         if args.omega is not None:
-            raise SystemExit("slipest simulate: --omega goes with the options; a scenario file sets the leg speed "
-                             "in [model] or per [[segment]] (omega = ...)")
+            raise ValueError("--omega goes with the options; a scenario file sets the leg speed in [model] or per "
+                             "[[segment]] (omega = ...)")
         try:
             scenario = Scenario.from_dict(doc)
-            check_cycle_length(scenario)
+            check_lengths(scenario)
         except (ValueError, TypeError) as exc:
-            raise SystemExit(f"slipest simulate: {args.scenario}: {exc}") from None
+            raise ValueError(f"{args.scenario}: {exc}") from None
         return scenario
     params = StickSlipParams(
         slip=args.slip, kS=args.kS, phiS=args.phiS, phiD=args.phiD, kappa=args.kappa, nL=args.legs,
@@ -169,8 +215,9 @@ def build_scenario(args: argparse.Namespace) -> Scenario:
         imu["dt"] = args.dt
     if args.cycles < 1:
         raise ValueError(f"--cycles={args.cycles} must be >= 1")
+    check_cycle_count(args.cycles, f"--cycles={args.cycles}")
     scenario = Scenario(cycles=(params,) * args.cycles, effects=tuple(effects), **imu)
-    check_cycle_length(scenario)
+    check_lengths(scenario)
     return scenario
 
 

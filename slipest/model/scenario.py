@@ -32,7 +32,9 @@ tables, ``segment`` and ``effect`` arrays of tables (``[[segment]]``); every
 number is a finite number (a boolean is not one), ``cycles`` a positive
 integer, ``seed`` a non-negative integer. Effects are checked (names,
 parameters, each effect named once) when the scenario is built, so a bad
-one fails before anything is simulated or written.
+one fails before anything is simulated or written. A scenario holds at most
+:data:`MAX_CYCLES` leg cycles, counted before any is built (each cycle's
+parameters are kept in memory).
 """
 
 from __future__ import annotations
@@ -51,6 +53,23 @@ DEFAULT_RATE = 1000.0
 
 #: Default value of every model parameter (the header lists those a run changes).
 _DEFAULTS = {f.name: f.default for f in fields(StickSlipParams)}
+
+#: Most leg cycles a scenario may hold. Each cycle keeps its own parameters (about 300 bytes, and some 35 us to
+#: build and check), so a million take about 0.3 GB and half a minute before the first sample is simulated; at
+#: the default leg speed (2.5 s a cycle) they are 29 days of driving.
+MAX_CYCLES = 1_000_000
+#: Memory a scenario's cycle takes [bytes] (a StickSlipParams of its own), for the message of :data:`MAX_CYCLES`.
+_CYCLE_BYTES = 300
+
+
+def check_cycle_count(n: int, what: str) -> None:
+    """ValueError when ``n`` leg cycles are more than :data:`MAX_CYCLES` (call it before building them); ``what``
+    names where the count comes from, for the message (``"--cycles=N"``, ``"segment 2: cycles = N"``)."""
+    if n > MAX_CYCLES:
+        raise ValueError(f"{what}: {n:,} leg cycles would take up to {n * _CYCLE_BYTES / 1e9:.3g} GB of memory "
+                         f"before the first sample (each cycle's parameters are kept, up to {_CYCLE_BYTES} bytes a "
+                         f"cycle); a scenario may hold at most {MAX_CYCLES:,} leg cycles: simulate fewer")
+
 
 #: Per-cycle fields a segment may set (``omega``: the leg speed [rad/s]); the rest belong to [model].
 SEGMENT_FIELDS = ("slip", "kS", "phiS", "phiD", "omega")
@@ -116,7 +135,8 @@ class Scenario:
     effects: effect specifications (``{"name": ..., params...}`` dicts) of
         the sim-to-real catalog, applied by :mod:`slipest.model.stream`;
         checked here (:func:`slipest.model.effects.normalise_specs`).
-    ValueError naming the field when one is not valid.
+    ValueError naming the field when one is not valid (more than
+    :data:`MAX_CYCLES` cycles among them).
     """
 
     cycles: tuple[StickSlipParams, ...]
@@ -129,6 +149,7 @@ class Scenario:
     def __post_init__(self):
         if not self.cycles:
             raise ValueError("a scenario needs at least one leg cycle")
+        check_cycle_count(len(self.cycles), "cycles")
         first = self.cycles[0]
         for j, c in enumerate(self.cycles):
             if c.nL != first.nL:
@@ -172,9 +193,10 @@ class Scenario:
 
     @classmethod
     def constant(cls, n_cycles: int, params: StickSlipParams | None = None, **imu) -> "Scenario":
-        """``n_cycles`` identical cycles."""
+        """``n_cycles`` identical cycles (at most :data:`MAX_CYCLES`)."""
         if n_cycles < 1:
             raise ValueError(f"cycles={n_cycles} must be >= 1")
+        check_cycle_count(n_cycles, f"cycles={n_cycles}")
         return cls(cycles=(params or StickSlipParams(),) * int(n_cycles), **imu)
 
     @classmethod
@@ -194,7 +216,8 @@ class Scenario:
     def from_segments(
         cls, segments: Sequence[dict], base: StickSlipParams | None = None, imu: dict | None = None, effects=()
     ) -> "Scenario":
-        """Segments of ``cycles`` cycles each with their slip (number or ``[start, end]`` ramp) and soil."""
+        """Segments of ``cycles`` cycles each with their slip (number or ``[start, end]`` ramp) and soil; a segment
+        that would bring the cycles over :data:`MAX_CYCLES` is refused, naming it, before its cycles are built."""
         base = base or StickSlipParams()
         cycles: list[StickSlipParams] = []
         for s, seg in enumerate(segments, start=1):
@@ -212,6 +235,8 @@ class Scenario:
                                  "positive integer (a number of leg cycles)")
             if not isinstance(n, int) or n < 1:
                 raise ValueError(f"segment {s}: cycles={n!r} must be a positive integer")
+            total = f" (the scenario's cycles in all: {len(cycles) + n:,})" if cycles else ""
+            check_cycle_count(len(cycles) + n, f"segment {s}: cycles = {n}{total}")
             ramps = {}
             for key, value in seg.items():
                 if isinstance(value, (list, tuple)):
