@@ -315,23 +315,29 @@ def test_simulate_refuses_a_negative_seed(tmp_path, capsys, argv, doc, message):
     assert out.read_bytes() == before and "Traceback" not in err
 
 
+def _refused_simulate(tmp_path, argv, doc, name: str) -> str:
+    """``slipest simulate ARGV -o run.csv`` (with ``doc`` written as the scenario file ``name`` when given):
+    its refusal's text; the output was not written."""
+    out = tmp_path / "run.csv"
+    if doc is not None:
+        scenario = tmp_path / name
+        scenario.write_text(doc)
+        argv = ["--scenario", str(scenario)]
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate", *argv, "-o", str(out)])
+    assert not out.exists()
+    return str(exc.value)
+
+
 @pytest.mark.parametrize("argv, doc", [
     (["--omega", "0.001", "--cycles", "1"], None),
     ([], "[[segment]]\ncycles = 1\n[[segment]]\ncycles = 1\nomega = 0.001\n"),
 ])
 def test_simulate_refuses_a_leg_so_slow_one_cycle_would_take_gigabytes(tmp_path, argv, doc):
-    out = tmp_path / "run.csv"
-    if doc is not None:
-        scenario = tmp_path / "slow.toml"
-        scenario.write_text(doc)
-        argv = ["--scenario", str(scenario)]
-    with pytest.raises(SystemExit) as exc:
-        main(["simulate", *argv, "-o", str(out)])
-    text = str(exc.value)
+    text = _refused_simulate(tmp_path, argv, doc, "slow.toml")
     assert "omega=0.001 rad/s lasts 1571 s" in text and "give a leg speed omega >= 0.0027 rad/s" in text, text
     if doc is not None:
         assert "slow.toml" in text and "leg cycle 2 " in text
-    assert not out.exists()
 
 
 @pytest.mark.parametrize("argv, doc, message", [
@@ -347,16 +353,10 @@ def test_simulate_refuses_a_leg_so_slow_one_cycle_would_take_gigabytes(tmp_path,
 def test_simulate_refuses_a_run_too_large_before_it_allocates(tmp_path, capsys, argv, doc, message):
     """QA s25: ``--cycles 100000000000`` (and a scenario file's ``cycles``) died with a MemoryError traceback while
     building the cycles; now refused first, naming the option or the file and segment, and the size."""
-    out = tmp_path / "run.csv"
-    if doc is not None:
-        scenario = tmp_path / "big.toml"
-        scenario.write_text(doc)
-        argv = ["--scenario", str(scenario)]
     t0 = time.monotonic()
-    with pytest.raises(SystemExit) as exc:
-        main(["simulate", *argv, "-o", str(out)])
-    assert message in str(exc.value), str(exc.value)
-    assert not out.exists() and "Traceback" not in capsys.readouterr().err
+    text = _refused_simulate(tmp_path, argv, doc, "big.toml")
+    assert message in text, text
+    assert "Traceback" not in capsys.readouterr().err
     assert time.monotonic() - t0 < 20  # refused before any cycle is simulated
 
 
@@ -372,15 +372,9 @@ def test_simulate_refuses_a_run_too_large_before_it_allocates(tmp_path, capsys, 
 def test_simulate_refuses_a_leg_cycle_shorter_than_a_few_samples(tmp_path, argv, doc, message):
     """QA s25: ``--omega 1e6 --cycles 20`` wrote one data row and said "wrote 20 leg cycles" (a cycle shorter than a
     sample); now refused, naming the leg speed, the legs and the rate, and what would do."""
+    text = _refused_simulate(tmp_path, argv, doc, "legs.toml")
+    assert message in text, text
     out = tmp_path / "run.csv"
-    if doc is not None:
-        scenario = tmp_path / "legs.toml"
-        scenario.write_text(doc)
-        argv = ["--scenario", str(scenario)]
-    with pytest.raises(SystemExit) as exc:
-        main(["simulate", *argv, "-o", str(out)])
-    assert message in str(exc.value), str(exc.value)
-    assert not out.exists()
     assert main(["simulate", "--cycles", "2", "--rate", "5", "-o", str(out)]) == 0  # 12.5 samples a cycle: taken
     assert len(read_log(out)) == 25
 
