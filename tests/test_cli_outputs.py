@@ -101,5 +101,6 @@ def test_an_output_that_cannot_be_written_is_refused_before_the_work(where, log,
         pytest.skip("no /proc on this system")
     t0 = time.monotonic()
     _refused(["calibrate", str(log), "--no-progress", "-o", where], capsys, "cannot write" if where else "name a file")
-    _refused(["diagnose", str(log), "--no-progress", "--json", where], capsys, "cannot write" if where else "name a file")
+    _refused(["diagnose", str(log), "--no-progress", "--json", where], capsys,
+             "cannot write" if where else "name a file")
     assert time.monotonic() - t0 < 30

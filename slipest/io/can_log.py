@@ -36,8 +36,7 @@ import numpy as np
 from can.io.player import MESSAGE_READERS
 
 from slipest.extras import import_extra
-from slipest.io.can_messages import COUNTER_MODULUS, REORDER_FRAMES, TIME_MOD_PERIOD, CanDecoder
-from slipest.io.can_messages import SlipReferenceMessage
+from slipest.io.can_messages import COUNTER_MODULUS, REORDER_FRAMES, TIME_MOD_PERIOD, CanDecoder, SlipReferenceMessage
 from slipest.io.can_source import add_record
 from slipest.io.log_csv import LogFormatError
 from slipest.io.source import SourceBatch

@@ -27,9 +27,8 @@ deviations that made the blind estimates of held-out testbed logs cover
 95 % of their slips (1: they did without). ``testbed_speeds``: ``(lo, hi)`` [rad/s], the leg speeds of
 the testbed logs, or None (not known: a model made in memory, a file from before they were kept);
 with them (:meth:`RoverSurrogate.of`) the model covers the speeds within :data:`SPEED_MARGIN` of them and no
-others (``covered``, which the estimator flags a cycle outside of as ``"speed"``): ``D``, ``Q`` and a learnt angle offset hold at the
-testbed's speeds, and measured, a rover file used at 0.9 rad/s after a calibration at 0.63 covered 60 %
-of the slips with its 95 % intervals. ``source``: where the rover model came from (its file), for messages.
+others (``covered``, which the estimator flags a cycle outside of as ``"speed"``): ``D``, ``Q`` and a learnt
+angle offset hold at the testbed's speeds (docs/calibration.md, "Limits", has the figures). ``source``: where the rover model came from (its file), for messages.
 Made by :func:`slipest.rover.calibrate.calibrate`, read by
 :func:`slipest.rover.file.load_rover`.
 """
