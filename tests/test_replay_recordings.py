@@ -66,7 +66,8 @@ def two_wheels_offline(two_wheels):
 @pytest.mark.parametrize("suffix", [".blf", ".asc", ".log", ".trc", ".csv", ".asc.gz", ".mf4"])
 def test_python_can_log_formats_replay_every_wheel(suffix, two_wheels, two_wheels_offline, tmp_path, capsys):
     if suffix == ".mf4":
-        pytest.importorskip("asammdf")  # the [mf4] extra (in [test])
+        pytest.importorskip("asammdf", reason="the [mf4] extra is not installed (not in [test]: pyproject.toml "
+                            "says why)")
     frames = can_frames(two_wheels, unknown_every=400)
     log = write_can_log(tmp_path / f"drive{suffix}", frames)
     rc, out, err = replay([log], capsys)
