@@ -27,6 +27,12 @@ def drive():
     return stream(4, seed=3)
 
 
+def _folder_log(drive, folder, name: str):
+    """The drive written as the log ``name`` in ``folder`` (made here): its path."""
+    folder.mkdir()
+    return write_csv(folder / name, *drive)
+
+
 def _table(path) -> list[dict]:
     with open(path, newline="") as fh:
         return list(csv.DictReader(fh))
@@ -36,10 +42,8 @@ def _table(path) -> list[dict]:
 
 
 def test_replay_folder_refuses_an_output_that_is_one_of_its_logs(drive, tmp_path, capsys):
-    s, sc = drive
     folder = tmp_path / "drives"
-    folder.mkdir()
-    log = write_csv(folder / "run1.csv", s, sc)
+    log = _folder_log(drive, folder, "run1.csv")
     before = _md5(log)
     rc = main(["replay", str(folder), "-o", str(log), "--no-progress", "--jobs", "1"])
     err = capsys.readouterr().err
@@ -49,10 +53,8 @@ def test_replay_folder_refuses_an_output_that_is_one_of_its_logs(drive, tmp_path
 
 
 def test_replay_folder_leaves_out_its_own_earlier_table(drive, tmp_path, capsys):
-    s, sc = drive
     folder = tmp_path / "drives"
-    folder.mkdir()
-    write_csv(folder / "run1.csv", s, sc)
+    _folder_log(drive, folder, "run1.csv")
     out = folder / "table.csv"
     assert main(["replay", str(folder), "-o", str(out), "--no-progress", "--jobs", "1"]) == 0
     capsys.readouterr()
@@ -66,10 +68,8 @@ def test_replay_folder_leaves_out_its_own_earlier_table(drive, tmp_path, capsys)
 
 
 def test_diagnose_per_log_refuses_an_output_that_is_one_of_its_logs(drive, tmp_path, capsys):
-    s, sc = drive
     folder = tmp_path / "dg"
-    folder.mkdir()
-    log = write_csv(folder / "tb.csv", s, sc)
+    log = _folder_log(drive, folder, "tb.csv")
     before = _md5(log)
     rc = main(["diagnose", "--per-log", str(folder), "-o", str(log), "--quick", "--no-progress", "--jobs", "1"])
     err = capsys.readouterr().err
@@ -186,8 +186,7 @@ def test_jobs_below_one_is_refused_by_the_arguments(command, jobs, drive, tmp_pa
     """--jobs 0 and -1 were taken (0 as one per core, -1 as one in this process): refused as a usage error naming
     --jobs before any log is read, as --legs is."""
     folder = tmp_path / "drives"
-    folder.mkdir()
-    write_csv(folder / "run1.csv", *drive)
+    _folder_log(drive, folder, "run1.csv")
     out = tmp_path / "table.csv"
     rc, err = slipest_in_process(capsys, *command, folder, "-o", out, "--no-progress", "--jobs", jobs)
     assert rc == 2 and f"argument --jobs: {jobs!r} is not a number of worker processes (a whole number >= 1)" in err

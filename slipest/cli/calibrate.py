@@ -69,20 +69,6 @@ def _fail(msg: str):
     raise SystemExit(f"slipest calibrate: {msg}")
 
 
-def _is_rover_file(path) -> bool:
-    """Whether ``path`` holds a rover file (JSON of the rover file's ``kind``), which a calibration may replace."""
-    import json
-
-    from slipest.rover.file import KIND
-
-    try:
-        with open(path, "rb") as fh:
-            doc = json.load(fh)
-    except (OSError, ValueError):  # unreadable, not JSON, not UTF-8: not a rover file
-        return False
-    return isinstance(doc, dict) and doc.get("kind") == KIND
-
-
 def _progress_bar(args):
     """A tqdm bar per stage and the calibration's progress callback for it (None, None with --no-progress)."""
     if args.no_progress:
@@ -119,7 +105,9 @@ def run(args: argparse.Namespace) -> int:
     problem = output_problem(args.output, args.logs, makes_dirs=True)  # (write_rover creates them)
     if problem:  # before the calibration's minutes, not after
         _fail(problem)
-    if os.path.exists(args.output) and not (args.overwrite or _is_rover_file(args.output)):
+    from slipest.rover.file import is_rover_file
+
+    if os.path.exists(args.output) and not (args.overwrite or is_rover_file(args.output)):
         _fail(f"{args.output} exists and is not a rover file: use --overwrite to replace it")
     effects = tuple(e.strip() for e in args.effects.split(",") if e.strip()) if args.effects else None
     if args.batch is not None and args.batch < 50:

@@ -78,11 +78,10 @@ class CounterOrder:
                 nxt = nxt + 1 if nxt + 1 < m else 0
                 i += 1
             self._next = nxt
-            if i == len(seqs):
-                self._after_behind = None if i else self._after_behind
-                return seqs, fields
-            if i:
+            if i:  # a frame in order: no longer right after one that came behind
                 self._after_behind = None
+            if i == len(seqs):
+                return seqs, fields
         out_seqs = seqs[:i]
         out_fields = tuple(f[:i] for f in fields)
         for k in range(i, len(seqs)):

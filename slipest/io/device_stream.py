@@ -357,9 +357,11 @@ class WheelStream:
         and those waiting for a late frame); ``reordered``: frames put back in counter order (a late frame's
         duplicate held counts as ``out_of_order``)."""
         c = dict(self.c)
-        c["held"] = len(self._held) + (len(self._order) if self._order is not None else 0)
-        c["reordered"] = self._order.reordered if self._order is not None else 0
+        c["held"] = len(self._held)
+        c["reordered"] = 0
         if self._order is not None:
+            c["held"] += len(self._order)
+            c["reordered"] = self._order.reordered
             c["out_of_order"] += self._order.duplicates
         return c
 

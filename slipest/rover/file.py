@@ -107,9 +107,24 @@ def _json_safe(x):
     return x
 
 
+def is_rover_document(doc) -> bool:
+    """Whether a JSON document is of the rover file's ``kind`` (whatever its version)."""
+    return isinstance(doc, dict) and doc.get("kind") == KIND
+
+
+def is_rover_file(path) -> bool:
+    """Whether ``path`` holds a rover file's JSON (:func:`is_rover_document`); False when it cannot be read, is
+    not UTF-8 JSON, or is of another kind (what ``slipest calibrate -o`` may replace without ``--overwrite``)."""
+    try:
+        with open(path, "rb") as fh:
+            return is_rover_document(json.load(fh))
+    except (OSError, ValueError):
+        return False
+
+
 def validate_rover(doc, source: str) -> dict:
     """Check the document's kind, version and keys; :class:`RoverFileError` naming ``source`` otherwise."""
-    if not isinstance(doc, dict) or doc.get("kind") != KIND:
+    if not is_rover_document(doc):
         what = doc.get("kind") if isinstance(doc, dict) else type(doc).__name__
         raise RoverFileError(f"{source}: not a slipest rover file (kind {what!r}; make one with slipest calibrate)")
     version = doc.get("format_version")
@@ -301,5 +316,5 @@ def _base_model(info, source: str):
     return model
 
 
-__all__ = ["FORMAT_VERSION", "KIND", "RoverFileError", "load_rover", "model_fingerprint", "model_from_files", "rover_document",
-           "save_rover", "validate_rover"]
+__all__ = ["FORMAT_VERSION", "KIND", "RoverFileError", "is_rover_document", "is_rover_file", "load_rover",
+           "model_fingerprint", "model_from_files", "rover_document", "save_rover", "validate_rover"]

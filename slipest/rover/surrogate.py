@@ -48,6 +48,15 @@ from slipest.rover.discrepancy import Discrepancy
 #: Relative margin around the testbed's leg speeds within which a rover model is used (Eq. 5.15's speed_tol).
 SPEED_MARGIN = 0.1
 
+def _checked_speeds(speeds, source: str) -> tuple[float, float]:
+    """``(lo, hi)`` [rad/s] of the testbed's leg speeds as floats; ValueError naming ``source`` unless
+    ``0 < lo <= hi``, both finite."""
+    lo, hi = (float(v) for v in speeds)
+    if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 < lo <= hi):
+        raise ValueError(f"{source}: the testbed's leg speeds must be 0 < lo <= hi rad/s, got {speeds}")
+    return lo, hi
+
+
 #: The shipped surrogate's mean on a grid (:meth:`FeatureSurrogate.grid_factors`, not whitened), kept for the rover
 #: models built on it (calibration builds many: each would otherwise recompute the same factors for every leg
 #: speed and noise); least recently used first out.
@@ -90,10 +99,7 @@ class RoverSurrogate(FeatureSurrogate):
         super().__post_init__()
         d = len(self.features)
         if self.testbed_speeds is not None:
-            lo, hi = self.testbed_speeds
-            if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 < lo <= hi):
-                raise ValueError(f"{self.source}: the testbed's leg speeds must be 0 < lo <= hi rad/s, got "
-                                 f"{self.testbed_speeds}")
+            _checked_speeds(self.testbed_speeds, self.source)
         if not (math.isfinite(self.angle_offset) and abs(self.angle_offset) < math.pi / self.n_legs):
             raise ValueError(f"{self.source}: angle_offset must be finite and within half a leg cycle "
                              f"(|offset| < pi/nL), got {self.angle_offset} rad")
@@ -125,11 +131,7 @@ class RoverSurrogate(FeatureSurrogate):
         own = {f.name: getattr(base, f.name) for f in fields(FeatureSurrogate)}
         speeds = rover.get("testbed_speeds")
         if speeds is not None:
-            lo, hi = (float(v) for v in speeds)
-            if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 < lo <= hi):
-                raise ValueError(f"{rover.get('source', 'rover model')}: the testbed's leg speeds must be "
-                                 f"0 < lo <= hi rad/s, got {speeds}")
-            rover["testbed_speeds"] = (lo, hi)
+            lo, hi = rover["testbed_speeds"] = _checked_speeds(speeds, rover.get("source", "rover model"))
             blo, bhi = base.covered_range("omega")
             rlo, rhi = max(blo, lo * (1.0 - SPEED_MARGIN)), min(bhi, hi * (1.0 + SPEED_MARGIN))
             if not rlo <= rhi:
